@@ -23,6 +23,7 @@ from typing import TextIO
 
 import canopen
 
+from drives.bus import open_bus
 from drives.errors import DriveError
 from drives.master import AxisSpec, Cia402Master, MasterSettings
 from drives.scaling import AxisScaling
@@ -146,10 +147,10 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
     """
     stack = ExitStack()
     with stack:
-        network = canopen.Network()
-        network.connect(
-            interface=config.can.interface, channel=config.can.channel, bitrate=config.can.bitrate
+        network = canopen.Network(
+            open_bus(config.can.interface, config.can.channel, config.can.bitrate)
         )
+        network.connect()
         stack.callback(network.disconnect)
         if config.simulation.drives:
             from drives.sim.drive import start_simulated_drives

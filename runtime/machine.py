@@ -281,7 +281,7 @@ class Machine:
         elif event is FeedEvent.UNDERRUN:
             self.raise_fault(FaultKind.BUFFER_UNDERRUN, "setpoint buffer underrun during motion")
         elif event is FeedEvent.PLANNER_FAILED:
-            self.raise_fault(FaultKind.PLANNER_ERROR, "planner failed during motion")
+            self.raise_fault(FaultKind.PLANNER_ERROR, self.feed.failure or "planner failed")
         elif self.state is MachineState.STOPPING and self.feed.mode is FeedMode.IDLE:
             self._enter(MachineState.STANDBY, "stopped")
 

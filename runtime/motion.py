@@ -93,12 +93,20 @@ class Setpoint:
 
 @dataclass(eq=False)
 class _Job:
+    """What the worker plans; mutated by the worker only, except ``splice_limits``."""
+
     segments: tuple[Segment, ...]
     limits: Limits
-    splice: bool = False
-    """Re-plan from a row ahead of the cyclic task instead of from the segments' starts."""
-    planned: bool = False
+    segment: int = 0
+    """The segment being planned."""
+    blocks: Iterator[SetpointBlock] | None = None
+    """The planner stream of that segment, once started."""
+    done: bool = False
     """Everything up to the end of the last segment is in the buffer."""
+    splice_limits: Limits | None = None
+    """A feed-override change to splice in (set by the cyclic thread under the lock)."""
+    splice_lead: int = 0
+    """Periods ahead of the cyclic task where the splice is tried next."""
 
 
 class MotionFeed:
@@ -174,10 +182,19 @@ class MotionFeed:
         """Re-plan the rest of the job with ``limits`` (a feed override), spliced ahead."""
         if self.mode is FeedMode.STARTING:
             self.follow(self._segments, limits)
-        elif self.mode is FeedMode.PLANNED:
-            with self._lock:
-                self._job = _Job(self._segments, limits, splice=True)
+            return
+        with self._lock:
+            job = self._job
+            if self.mode is FeedMode.PLANNED and job is not None:
+                job.splice_limits = limits
+                job.splice_lead = self.splice_lead_periods
                 self._wake.notify_all()
+
+    @property
+    def splice_pending(self) -> bool:
+        """Whether a feed-override change is waiting to be spliced into the plan."""
+        job = self._job
+        return job is not None and job.splice_limits is not None
 
     def brake(self, *, amax_mm_s2: float, jmax_mm_s3: float) -> None:
         """Brake to rest on the current path from the current feed and acceleration, now."""
@@ -199,6 +216,11 @@ class MotionFeed:
         self._braking_u = float(now.path.arc.u_of_s(now.s_mm)[0])
 
     @property
+    def failure(self) -> str | None:
+        """Why the planner worker failed on the current job, if it did."""
+        return self._failure
+
+    @property
     def buffered_periods(self) -> int:
         """Planned setpoints waiting in the buffer (0 when not following a plan)."""
         return self._buffered_rows
@@ -207,7 +229,7 @@ class MotionFeed:
     def planning_done(self) -> bool:
         """Whether the current plan is buffered to its end (or there is none to plan)."""
         job = self._job
-        return job is None or job.planned
+        return job is None or job.done
 
     def take(self) -> FeedEvent:
         """Advance one period; the new setpoint is :attr:`current`."""
@@ -298,19 +320,28 @@ class MotionFeed:
 
     # -- worker thread --------------------------------------------------------------------
 
+    def _has_work(self) -> bool:
+        job = self._job
+        if job is None:
+            return False
+        if job.splice_limits is not None:
+            return True
+        return not job.done and self._buffered_rows < self.buffer_high_periods
+
     def _work(self) -> None:
         while True:
             with self._lock:
-                while not self._stopping and (self._job is None or self._job.planned):
+                while not self._stopping and not self._has_work():
                     self._wake.wait()
                 if self._stopping:
                     return
                 job = self._job
+                splice = job.splice_limits
             try:
-                if job.splice:
-                    self._splice(job)
+                if splice is not None:
+                    self._splice(job, splice)
                 else:
-                    self._stream(job, 0, self._blocks(job.segments[0], job.limits))
+                    self._extend(job)
             except PlannerError as exc:
                 self._fail(job, f"planner: {exc}")
             except Exception as exc:
@@ -321,7 +352,8 @@ class MotionFeed:
         with self._lock:
             if self._job is job:
                 self._failure = reason
-                job.planned = True
+                job.done = True
+                job.splice_limits = None
 
     def _blocks(self, segment: Segment, limits: Limits) -> Iterator[SetpointBlock]:
         return stream_setpoints(
@@ -334,65 +366,65 @@ class MotionFeed:
             block_periods=self.block_periods,
         )
 
-    def _stream(self, job: _Job, segment: int, blocks: Iterator[SetpointBlock]) -> None:
-        """Append ``blocks`` of ``segment``, then plan and append the segments after it."""
-        while True:
-            path = job.segments[segment].path
-            last_segment = segment == len(job.segments) - 1
-            for block in blocks:
-                chunk = _Chunk(segment, path, block, block.last and last_segment)
-                if not self._append(job, chunk):
-                    return
-            if last_segment:
-                break
-            segment += 1
-            blocks = self._blocks(job.segments[segment], job.limits)
-        with self._lock:
-            job.planned = True
+    def _make_chunk(self, job: _Job, segment: int, path: Path, block: SetpointBlock) -> _Chunk:
+        return _Chunk(segment, path, block, block.last and segment == len(job.segments) - 1)
 
-    def _append(self, job: _Job, chunk: _Chunk) -> bool:
-        """Append a planned block, waiting while the buffer is full; False once superseded."""
+    def _extend(self, job: _Job) -> None:
+        """Plan the job's next block and append it (the worker's step while nothing else waits)."""
+        if job.blocks is None:
+            job.blocks = self._blocks(job.segments[job.segment], job.limits)
+        block = next(job.blocks, None)
         with self._lock:
-            while (
-                self._job is job
-                and not self._stopping
-                and self._buffered_rows >= self.buffer_high_periods
-            ):
-                self._wake.wait()
-            if self._job is not job or self._stopping:
-                return False
-            self._chunks.append(chunk)
-            self._buffered_rows += len(chunk.block)
-            self._wake.notify_all()
-            return True
-
-    def _splice(self, job: _Job) -> None:
-        """Re-plan from a row a little ahead of the cyclic task with the job's new limits."""
-        lead = self.splice_lead_periods
-        while True:
-            with self._lock:
-                if self._job is not job:
-                    return
-                found = self._splice_point(self._taken + lead)
-            if found is None:
-                self._fail(job, "feed override: no planned setpoint left to re-plan from")
+            if self._job is not job:
                 return
-            row, segment, state = found
-            blocks = self._blocks(Segment(job.segments[segment].path, state), job.limits)
-            first = next(blocks)
-            last_segment = segment == len(job.segments) - 1
-            chunk = _Chunk(segment, job.segments[segment].path, first, first.last and last_segment)
+            if block is None:
+                job.blocks = None
+                job.segment += 1
+                job.done = job.segment == len(job.segments)
+                return
+            self._chunks.append(
+                self._make_chunk(job, job.segment, job.segments[job.segment].path, block)
+            )
+            self._buffered_rows += len(block)
+            self._wake.notify_all()
+
+    def _splice(self, job: _Job, limits: Limits) -> None:
+        """Re-plan from a buffered row a little ahead of the cyclic task with ``limits``.
+
+        The old plan keeps feeding the buffer until the new one is cut in, so the cyclic task
+        never waits for the re-plan; if it took the chosen row meanwhile, try further ahead.
+        """
+        with self._lock:
+            found = self._splice_point(self._taken + job.splice_lead)
+        if found is None:
+            if not job.done:
+                self._extend(job)  # the row is not planned yet: the old plan goes on meanwhile
+                return
             with self._lock:
-                if self._job is not job:
-                    return
-                if row >= self._taken:
-                    # Cut and append under one lock: the cyclic task never sees the gap.
-                    self._cut_after(row)
-                    self._chunks.append(chunk)
-                    self._buffered_rows += len(first)
-                    break
-            lead *= 2
-        self._stream(job, segment, blocks)
+                # Fewer rows left than the lead: the motion is already braking to its end.
+                if job.splice_limits is limits:
+                    job.splice_limits = None
+            return
+        row, segment, state = found
+        path = job.segments[segment].path
+        blocks = self._blocks(Segment(path, state), limits)
+        first = next(blocks)
+        with self._lock:
+            if self._job is not job or job.splice_limits is not limits:
+                return
+            if row < self._taken:
+                job.splice_lead *= 2
+                return
+            # Cut and append under one lock: the cyclic task never sees a gap.
+            self._cut_after(row)
+            self._chunks.append(self._make_chunk(job, segment, path, first))
+            self._buffered_rows += len(first)
+            job.limits = limits
+            job.segment = segment
+            job.blocks = blocks
+            job.done = False
+            job.splice_limits = None
+            self._wake.notify_all()
 
     def _pending(self) -> Iterator[tuple[int, _Chunk, int]]:
         """(absolute row, chunk, row in chunk) of the first pending row of every chunk."""
@@ -405,19 +437,17 @@ class MotionFeed:
             index += len(chunk.block)
 
     def _splice_point(self, wanted: int) -> tuple[int, int, MotionState] | None:
-        """The buffered row nearest ``wanted`` (not past the buffer's end) and its state."""
-        best: tuple[int, int, MotionState] | None = None
+        """The row ``wanted`` with its segment and state, if it is buffered (lock held).
+
+        Never a segment's final row (the motion rests there; nothing to re-plan).
+        """
         for first, chunk, offset in self._pending():
             last = first + len(chunk.block) - offset - 1
-            if chunk.last_of_job or chunk.block.last:
-                last -= 1  # never splice on a segment's final rest
-            if last < first:
-                continue
-            row = min(wanted, last)
-            best = (row, chunk.segment, chunk.block.state(offset + row - first))
-            if wanted <= last:
-                break
-        return best
+            if chunk.block.last:
+                last -= 1
+            if first <= wanted <= last:
+                return wanted, chunk.segment, chunk.block.state(offset + wanted - first)
+        return None
 
     def _cut_after(self, row: int) -> None:
         """Drop every buffered row after ``row`` (lock held)."""

@@ -15,7 +15,7 @@ from runtime.commands import Command, CommandCode, CommandResult
 from runtime.config import MachineConfig, load_config
 from runtime.controller import Controller
 from runtime.curves import load_curve_file
-from runtime.motion import FeedMode
+from runtime.motion import FeedMode, Setpoint
 from runtime.scheduler import CycleTick
 from runtime.status import MachineState, StatusSnapshot
 
@@ -32,6 +32,8 @@ class Harness:
         self.controller = controller
         self.period_s = controller.config.cycle.period_s
         self.index = 0
+        self.setpoints: list[Setpoint] = []
+        """The feed's setpoint of every cycle stepped."""
 
     @property
     def status(self) -> StatusSnapshot:
@@ -49,8 +51,12 @@ class Harness:
                 if time.monotonic() > deadline:
                     raise TimeoutError("planner worker produced nothing for 10 s")
                 time.sleep(0.0005)
+            if feed.splice_pending:
+                # Give the worker the time real cycles would while it re-plans.
+                time.sleep(self.period_s)
             tick = CycleTick(self.index, self.index, self.index * self.period_s, 0.0, 0)
             self.controller.step(tick)
+            self.setpoints.append(feed.current)
             self.index += 1
 
     def until(self, condition: Callable[[StatusSnapshot], bool], max_cycles: int) -> int:
