@@ -32,12 +32,17 @@ from runtime.commands import Command, CommandCode, CommandResult
 from runtime.config import MachineConfig
 from runtime.controller import Controller
 from runtime.curves import load_curve_file
+from runtime.priorities import prioritise_threads
 from runtime.scheduler import CyclicTask
 from runtime.status import MachineState, StatusSnapshot
 
 logger = logging.getLogger(__name__)
 
 DEMO_CURVE = Path("configs/curves/paper.yaml")
+#: SYNC-loss limit of in-process simulated drives, in periods. Real drives use 1.5 to 2; drives
+#: simulated in this process share its interpreter lock with the planner worker, so their SYNC
+#: callbacks can lag several periods behind a SYNC that went out on time.
+SIMULATED_SYNC_TIMEOUT_PERIODS = 10.0
 _IN_MOTION = (MachineState.MOVING, MachineState.HOLDING, MachineState.STOPPING)
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -154,11 +159,13 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
         stack.callback(network.disconnect)
         if config.simulation.drives:
             from drives.sim.drive import start_simulated_drives
+            from drives.sim.dynamics import DriveModel
 
             simulated = start_simulated_drives(
                 config.can.interface,
                 config.can.channel,
                 [axis.node_id for axis in config.axes],
+                model=DriveModel(sync_timeout_factor=SIMULATED_SYNC_TIMEOUT_PERIODS),
                 bitrate=config.can.bitrate,
             )
             stack.callback(simulated.close)
@@ -181,16 +188,18 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
             on_overrun_limit=controller.on_overrun_limit,
         )
         task_holder.append(task)
-        task.start()
-        stack.callback(task.stop)
         running = RunningMachine(config, controller, master, task)
         if serve_hmi and config.modbus.enabled:
             from runtime.hmi.server import HmiServer
 
+            # Serve before the cycle starts: the server's start-up must not cost cycle periods.
             hmi = HmiServer(config.modbus, controller)
             hmi.start()
             stack.callback(hmi.stop)
             running.hmi = hmi
+        prioritise_threads(config.cycle.realtime.priority)
+        task.start()
+        stack.callback(task.stop)
         running._stack = stack.pop_all()
         try:
             yield running

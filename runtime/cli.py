@@ -129,6 +129,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=args.log_level,
         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
     )
+    if args.log_level != "DEBUG":
+        # canopen logs every SDO transfer and PDO mapping step at INFO.
+        logging.getLogger("canopen").setLevel(logging.WARNING)
     try:
         if args.command == "run":
             from runtime.app import run_machine

@@ -118,7 +118,14 @@ class Controller:
         self._publish(feedback)
 
     def on_overrun_limit(self, consecutive: int) -> None:
-        """Called by the cyclic task when too many consecutive periods were missed."""
+        """Called by the cyclic task when too many consecutive periods were missed.
+
+        With the drives disabled nothing moves and nothing needs stopping: the misses are only
+        counted (and logged), so a start-up hiccup does not latch a fault.
+        """
+        if self.machine.state is MachineState.DISABLED:
+            logger.warning("%d consecutive cycle periods missed while disabled", consecutive)
+            return
         self.machine.raise_fault(
             FaultKind.CYCLE_OVERRUN,
             f"{consecutive} consecutive cycle periods missed "

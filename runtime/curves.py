@@ -17,7 +17,7 @@ from pathlib import Path as FilePath
 import numpy as np
 import yaml
 
-from planner.errors import CurveError
+from planner.errors import CurveError, CurveRule
 from planner.nurbs import NurbsCurve
 from planner.stream import Path
 from planner.types import Limits
@@ -36,6 +36,7 @@ class TravelError(CurveError):
             f"axis {axis.name}",
             f"reaches {value_mm:.3f} mm, outside its travel "
             f"[{axis.travel_min_mm:g}, {axis.travel_max_mm:g}] mm",
+            rule=CurveRule.TRAVEL,
         )
 
 
@@ -59,9 +60,11 @@ def load_curve_file(path: str | FilePath) -> NurbsCurve:
     try:
         document = yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        raise CurveError("file", f"{path}: cannot be read ({exc.strerror})") from None
+        raise CurveError(
+            "file", f"{path}: cannot be read ({exc.strerror})", rule=CurveRule.FORMAT
+        ) from None
     except yaml.YAMLError as exc:
-        raise CurveError("file", f"{path}: not valid YAML ({exc})") from None
+        raise CurveError("file", f"{path}: not valid YAML ({exc})", rule=CurveRule.FORMAT) from None
     return NurbsCurve.from_mapping(document)
 
 
@@ -115,6 +118,7 @@ def check_travel(curve: NurbsCurve, axes: tuple[AxisConfig, ...]) -> None:
         raise CurveError(
             "control_points",
             f"{curve.dimension} coordinates per point, the machine has {len(axes)} axes",
+            rule=CurveRule.DIMENSION,
         )
     low = np.array([axis.travel_min_mm for axis in axes[: curve.dimension]])
     high = np.array([axis.travel_max_mm for axis in axes[: curve.dimension]])

@@ -1,0 +1,43 @@
+"""Real-time priorities of the runtime's helper threads, below the cyclic thread.
+
+Python threads share one interpreter lock. A normal-priority thread of this process that holds
+the lock when the OS preempts it for another process keeps the SCHED_FIFO cyclic thread waiting
+until it runs again: on a loaded machine, tens of milliseconds. So every helper thread (CAN
+receive, Modbus server, simulated drives) runs SCHED_FIFO just below the cyclic thread, and the
+CPU-bound planner worker at the lowest real-time priority, where every other one preempts it.
+
+Linux only; where SCHED_FIFO is refused, one warning says so and the threads keep their
+scheduler.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from collections.abc import Collection
+
+logger = logging.getLogger(__name__)
+
+#: Threads (by name) that compute rather than wait; they get the lowest real-time priority.
+BACKGROUND_THREADS = ("planner",)
+
+
+def prioritise_threads(cycle_priority: int, *, exclude: Collection[threading.Thread] = ()) -> int:
+    """Give every running thread but the main one and ``exclude`` a SCHED_FIFO priority below
+    ``cycle_priority``; returns how many threads were changed (0 when priority is off)."""
+    if cycle_priority <= 1:
+        return 0
+    changed = 0
+    for thread in threading.enumerate():
+        if thread is threading.main_thread() or thread in exclude or thread.native_id is None:
+            continue
+        priority = 1 if thread.name in BACKGROUND_THREADS else cycle_priority - 1
+        try:
+            os.sched_setscheduler(thread.native_id, os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError) as exc:
+            logger.warning("helper threads keep their scheduler: SCHED_FIFO refused (%s)", exc)
+            return changed
+        changed += 1
+    logger.info("%d helper threads at SCHED_FIFO below the cyclic thread", changed)
+    return changed

@@ -1,0 +1,344 @@
+"""End to end: ``softmotion run`` on the simulated machine in a subprocess, driven over Modbus TCP
+by the HMI client, the ``softmotion hmi`` command line and Debian's mbpoll.
+
+mbpoll must be installed (``apt-get install -y mbpoll``; the test command installs it); where it
+cannot be, set ``SOFTMOTION_NO_MBPOLL=1`` and the mbpoll test is skipped with that reason.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from runtime.commands import ALLOWED, CommandCode, CommandResult
+from runtime.curves import load_curve_file
+from runtime.hmi.client import CommandRefused, HmiClient, ModbusReplyError
+from runtime.hmi.registers import FIELD, MAGIC, HmiStatus
+from runtime.hmi.upload import encode_staging, staging_of
+from runtime.status import MachineState
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER_PATH = ROOT / "configs" / "curves" / "paper.yaml"
+PAPER = load_curve_file(PAPER_PATH)
+SOFTMOTION = Path(sys.executable).with_name("softmotion")
+#: Seconds a started machine may take to answer on its Modbus port.
+BOOT_TIMEOUT_S = float(os.environ.get("SOFTMOTION_E2E_BOOT_S", "30"))
+#: Seconds the paper's curve may take to run (about 2.5 s of motion).
+RUN_TIMEOUT_S = float(os.environ.get("SOFTMOTION_E2E_RUN_S", "30"))
+S = MachineState
+
+pytestmark = pytest.mark.slow
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+class Machine:
+    """``softmotion run`` in a subprocess with its own Modbus port."""
+
+    def __init__(self, tmp: Path, **modbus: object) -> None:
+        tmp.mkdir(parents=True, exist_ok=True)
+        document = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
+        self.port = _free_port()
+        document["modbus"].update(port=self.port, **modbus)
+        self.config = tmp / "machine.yaml"
+        self.config.write_text(yaml.safe_dump(document))
+        self.log = tmp / "run.log"
+        with self.log.open("w") as log:
+            self.process = subprocess.Popen(
+                [str(SOFTMOTION), "run", "--config", str(self.config)],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                cwd=ROOT,
+            )
+        self.client = self._connect()
+
+    def _connect(self) -> HmiClient:
+        deadline = time.monotonic() + BOOT_TIMEOUT_S
+        while True:
+            if self.process.poll() is not None:
+                raise AssertionError(f"softmotion run exited:\n{self.log.read_text()}")
+            client = HmiClient(port=self.port, timeout_s=5.0)
+            try:
+                client.connect()
+                return client
+            except Exception:
+                client.close()
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+
+    def stop(self) -> None:
+        self.client.close()
+        self.process.send_signal(signal.SIGINT)
+        try:
+            self.process.wait(10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait(5)
+
+    def hmi(self, *argv: str) -> subprocess.CompletedProcess[str]:
+        """``softmotion hmi --port P ARGV`` as a subprocess."""
+        return subprocess.run(
+            [str(SOFTMOTION), "hmi", "--port", str(self.port), *argv],
+            capture_output=True,
+            text=True,
+            timeout=RUN_TIMEOUT_S + 10,
+            cwd=ROOT,
+        )
+
+
+@pytest.fixture
+def machine(tmp_path: Path) -> Iterator[Machine]:
+    running = Machine(tmp_path)
+    yield running
+    running.stop()
+
+
+def _enable_and_start(client: HmiClient) -> None:
+    assert client.command(CommandCode.ENABLE).result is CommandResult.DONE
+    client.wait_for(lambda s: s.snapshot.state is S.STANDBY, 10.0, "STANDBY")
+    assert client.command(CommandCode.START).result is CommandResult.DONE
+
+
+def _end_positions(status: HmiStatus) -> np.ndarray:
+    return np.array([a.actual_mm for a in status.snapshot.axes][: PAPER.dimension])
+
+
+def _bad_uploads() -> list[tuple[str, CommandResult, object]]:
+    cases: list[tuple[str, CommandResult, object]] = []
+    points, knots, weights = PAPER.control_points, PAPER.knots, PAPER.weights
+
+    def variant(**changes: object) -> object:
+        arrays = {"degree": 3, "points": points.copy(), "knots": knots.copy()}
+        arrays["weights"] = weights.copy()
+        arrays.update(changes)
+        return encode_staging(
+            arrays["degree"], arrays["points"], arrays["knots"], arrays["weights"]
+        )
+
+    decreasing = knots.copy()
+    decreasing[5] = 0.3
+    cases.append(
+        ("decreasing knots", CommandResult.CURVE_KNOTS_DECREASING, variant(knots=decreasing))
+    )
+    cases.append(("wrong knot count", CommandResult.CURVE_KNOT_COUNT, variant(knots=knots[:-1])))
+    for label, value in (("weight 0", 0.0), ("negative weight", -0.5)):
+        w = weights.copy()
+        w[2] = value
+        cases.append((label, CommandResult.CURVE_BAD_WEIGHT, variant(weights=w)))
+    nan = points.copy()
+    nan[3, 1] = float("nan")
+    cases.append(("NaN", CommandResult.CURVE_NOT_FINITE, variant(points=nan)))
+    cases.append(
+        (
+            "degree too high",
+            CommandResult.CURVE_DEGREE_TOO_HIGH,
+            variant(
+                degree=7,
+                points=points[:5],
+                weights=weights[:5],
+                knots=np.r_[np.zeros(8), np.ones(4)],
+            ),
+        )
+    )
+    outside = points.copy()
+    outside[-1, 0] = 350.0
+    cases.append(("outside travel", CommandResult.CURVE_OUTSIDE_TRAVEL, variant(points=outside)))
+    return cases
+
+
+def test_upload_reject_bad_curves_run_to_the_end(machine: Machine) -> None:
+    client = machine.client
+    assert client.status().snapshot.state is S.DISABLED
+    assert client.load_curve(PAPER).result is CommandResult.DONE
+    crc = staging_of(PAPER).crc32
+    assert client.status().snapshot.curve_crc == crc
+    # Wrong CRC.
+    client.stage(staging_of(PAPER), crc32=crc ^ 0x1)
+    with pytest.raises(CommandRefused) as refused:
+        client.command(CommandCode.LOAD_CURVE)
+    assert (refused.value.result, refused.value.exception_code) == (
+        CommandResult.CURVE_CRC_MISMATCH,
+        3,
+    )
+    # Every bad curve, then too many points for the staging area.
+    for label, expected, staging in _bad_uploads():
+        with pytest.raises(CommandRefused) as refused:
+            client.load_curve(staging)
+        assert refused.value.result is expected, label
+        assert client.status().snapshot.curve_crc == crc, label
+    client.write(FIELD["CURVE_DEGREE"].address, [3, 3, 2001, 2005, 0, 0])
+    with pytest.raises(CommandRefused) as refused:
+        client.command(CommandCode.LOAD_CURVE)
+    assert refused.value.result is CommandResult.CURVE_TOO_LARGE
+    assert client.status().snapshot.curve_crc == crc
+    # The paper's curve is still the one that runs, to its end point.
+    _enable_and_start(client)
+    result = machine.hmi("--timeout", str(RUN_TIMEOUT_S), "watch", "--until-idle")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "MOVING" in result.stdout
+    status = client.status()
+    assert status.snapshot.state is S.STANDBY
+    assert status.snapshot.progress_permille == 1000
+    np.testing.assert_allclose(_end_positions(status), PAPER.end_point, atol=1e-3)
+
+
+def test_wrong_state_and_read_only_addresses(machine: Machine) -> None:
+    client = machine.client
+    before = client.read_holding(0, 4)
+    state = client.status().snapshot.state
+    refused_here = [c for c in CommandCode if c not in ALLOWED[state]]
+    assert refused_here
+    for code in refused_here:
+        with pytest.raises(CommandRefused) as refused:
+            client.send(code)
+        assert refused.value.exception_code == 6, code
+    assert client.read_holding(0, 4) == before
+    assert client.status().snapshot.state is state
+    for address in (4, 22, 999):
+        with pytest.raises(ModbusReplyError) as error:
+            client.write(address, [1])
+        assert error.value.exception_code == 2
+    result = machine.hmi(refused_here[0].name.lower().replace("_", "-"))
+    assert result.returncode == 1
+    assert "Modbus exception 6" in result.stderr and "REJECTED_STATE" in result.stderr
+
+
+def _mbpoll() -> str:
+    path = shutil.which("mbpoll")
+    if path is None:
+        if os.environ.get("SOFTMOTION_NO_MBPOLL"):
+            pytest.skip("mbpoll cannot be installed here (SOFTMOTION_NO_MBPOLL is set)")
+        pytest.fail(
+            "mbpoll is not installed: apt-get install -y mbpoll "
+            "(or set SOFTMOTION_NO_MBPOLL=1 where it cannot be installed)"
+        )
+    return path
+
+
+def _values(output: str) -> list[str]:
+    """The values of mbpoll's ``[address]: value`` lines."""
+    return [line.split(":", 1)[1].strip() for line in output.splitlines() if line.startswith("[")]
+
+
+def test_mbpoll_reads_identity_and_status_and_writes_a_command(machine: Machine) -> None:
+    mbpoll = _mbpoll()
+    base = [mbpoll, "-m", "tcp", "-p", str(machine.port), "-1", "-0"]
+
+    def run(*args: str) -> str:
+        done = subprocess.run([*base, *args], capture_output=True, text=True, timeout=10)
+        assert done.returncode == 0, done.stdout + done.stderr
+        return done.stdout
+
+    identity = _values(run("-a", "1", "-t", "3:hex", "-r", "0", "-c", "6", "127.0.0.1"))
+    assert [int(v, 16) for v in identity] == [MAGIC, 1, 0x47F1, 0x2000, 0x1234, 0x5678]
+    (test_float,) = _values(
+        run("-a", "255", "-t", "3:float", "-B", "-r", "2", "-c", "1", "127.0.0.1")
+    )
+    assert float(test_float) == 123456.0
+    state = _values(
+        run("-t", "3", "-r", str(FIELD["MACHINE_STATE"].address), "-c", "1", "127.0.0.1")
+    )
+    assert int(state[0]) == machine.client.status().snapshot.state
+    seq = (machine.client.read_holding(FIELD["COMMAND_SEQ"].address, 1)[0] + 1) & 0xFFFF
+    run("-t", "4", "-r", "0", "127.0.0.1", str(int(CommandCode.SET_OVERRIDE)), str(seq), "800")
+    status = machine.client.wait_for(lambda s: s.snapshot.last_command_seq == seq, 5.0)
+    assert status.snapshot.override_percent == 80.0
+    # A refused write: mbpoll reports the Modbus exception and exits 1.
+    refused = subprocess.run(
+        [*base, "-t", "4", "-r", "2", "127.0.0.1", "1600"],
+        capture_output=True,
+        text=True,
+        timeout=10,
+    )
+    assert refused.returncode != 0 and "Illegal data value" in refused.stderr + refused.stdout
+
+
+def _poll(port: int, stop: threading.Event, answers: list[int], errors: list[str]) -> None:
+    with HmiClient(port=port, timeout_s=2.0) as client:
+        while not stop.is_set():
+            started = time.monotonic()
+            try:
+                status = client.status()
+                snapshot = status.snapshot
+                assert isinstance(snapshot.state, MachineState)
+                assert len(snapshot.axes) == 3 and 0 <= snapshot.progress_permille <= 1000
+                answers.append(snapshot.heartbeat)
+            except Exception as exc:
+                errors.append(repr(exc))
+            stop.wait(max(0.0, 0.05 - (time.monotonic() - started)))
+
+
+def _run_paper(machine: Machine) -> tuple[HmiStatus, int]:
+    """Load, enable, start and run the paper's curve to its end; returns the final status and
+    the periods missed during the motion."""
+    client = machine.client
+    client.load_curve(PAPER)
+    _enable_and_start(client)
+    before = client.status().snapshot.stats.missed_periods
+    status = client.wait_for(lambda s: s.snapshot.state is not S.MOVING, RUN_TIMEOUT_S, "the end")
+    assert status.snapshot.state is S.STANDBY, status.snapshot.message
+    np.testing.assert_allclose(_end_positions(status), PAPER.end_point, atol=1e-3)
+    return status, status.snapshot.stats.missed_periods - before
+
+
+def test_ten_clients_at_20_hz_while_a_curve_runs(tmp_path: Path) -> None:
+    quiet = Machine(tmp_path / "quiet")
+    try:
+        _, missed_alone = _run_paper(quiet)
+    finally:
+        quiet.stop()
+    busy = Machine(tmp_path / "busy")
+    stop = threading.Event()
+    answers: list[int] = []
+    errors: list[str] = []
+    pollers = [
+        threading.Thread(target=_poll, args=(busy.port, stop, answers, errors)) for _ in range(10)
+    ]
+    try:
+        for poller in pollers:
+            poller.start()
+        _, missed_polled = _run_paper(busy)
+    finally:
+        stop.set()
+        for poller in pollers:
+            poller.join(5)
+        busy.stop()
+    assert errors == []
+    assert len(answers) >= 10 * 20 * 2  # ten clients, 20 Hz, the ~2.5 s of motion
+    # Scheduling noise on a shared 2-core machine: allow the quiet run's count plus 2 periods.
+    assert missed_polled <= missed_alone + 2
+
+
+def test_watchdog_holds_when_the_hmi_falls_silent(tmp_path: Path) -> None:
+    timeout_ms = 300
+    machine = Machine(tmp_path, watchdog={"timeout_ms": timeout_ms, "action": "hold"})
+    try:
+        client = machine.client
+        assert client.identity.watchdog_timeout_ms == timeout_ms
+        client.load_curve(PAPER)
+        _enable_and_start(client)
+        started = time.monotonic()
+        status = client.wait_for(lambda s: s.snapshot.state is S.HOLDING, 5.0, "the hold")
+        # Within the timeout plus the watchdog's poll, one cycle and the status poll.
+        assert time.monotonic() - started < timeout_ms / 1000 + 0.5
+        assert "hmi watchdog" in status.snapshot.message
+        assert status.snapshot.progress_permille < 1000
+    finally:
+        machine.stop()
