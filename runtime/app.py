@@ -225,6 +225,9 @@ def run_machine(
     }
     try:
         with start_machine(config) as machine:
+            # This process is the machine: its main thread must not hold the interpreter lock
+            # while preempted either.
+            prioritise_threads(config.cycle.realtime.priority, include_main=True)
             logger.info(
                 "machine running: %d axes on %s/%s, Modbus TCP %s",
                 len(config.axes),

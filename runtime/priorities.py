@@ -23,16 +23,26 @@ logger = logging.getLogger(__name__)
 BACKGROUND_THREADS = ("planner",)
 
 
-def prioritise_threads(cycle_priority: int, *, exclude: Collection[threading.Thread] = ()) -> int:
-    """Give every running thread but the main one and ``exclude`` a SCHED_FIFO priority below
-    ``cycle_priority``; returns how many threads were changed (0 when priority is off)."""
+def prioritise_threads(
+    cycle_priority: int,
+    *,
+    exclude: Collection[threading.Thread] = (),
+    include_main: bool = False,
+) -> int:
+    """Give every running thread but ``exclude`` (and the main one unless ``include_main``) a
+    SCHED_FIFO priority below ``cycle_priority``; returns how many threads were changed.
+
+    The main thread, when included, gets the lowest priority: it only waits and reports.
+    """
     if cycle_priority <= 1:
         return 0
     changed = 0
     for thread in threading.enumerate():
-        if thread is threading.main_thread() or thread in exclude or thread.native_id is None:
+        is_main = thread is threading.main_thread()
+        if (is_main and not include_main) or thread in exclude or thread.native_id is None:
             continue
-        priority = 1 if thread.name in BACKGROUND_THREADS else cycle_priority - 1
+        background = is_main or thread.name in BACKGROUND_THREADS
+        priority = 1 if background else cycle_priority - 1
         try:
             os.sched_setscheduler(thread.native_id, os.SCHED_FIFO, os.sched_param(priority))
         except (OSError, AttributeError) as exc:
