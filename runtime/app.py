@@ -93,6 +93,8 @@ class RunningMachine:
     master: Cia402Master
     task: CyclicTask
     hmi: object | None = None
+    simulated: object | None = None
+    """The in-process simulated drives (``drives.sim.drive.SimulatedDriveSet``), if any."""
     _stack: ExitStack = field(default_factory=ExitStack)
 
     def wait_for(
@@ -157,6 +159,7 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
         )
         network.connect()
         stack.callback(network.disconnect)
+        simulated = None
         if config.simulation.drives:
             from drives.sim.drive import start_simulated_drives
             from drives.sim.dynamics import DriveModel
@@ -188,7 +191,7 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
             on_overrun_limit=controller.on_overrun_limit,
         )
         task_holder.append(task)
-        running = RunningMachine(config, controller, master, task)
+        running = RunningMachine(config, controller, master, task, simulated=simulated)
         if serve_hmi and config.modbus.enabled:
             from runtime.hmi.server import HmiServer
 

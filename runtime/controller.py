@@ -17,6 +17,7 @@ import logging
 import queue
 import threading
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
 from planner.nurbs import NurbsCurve
@@ -32,6 +33,15 @@ logger = logging.getLogger(__name__)
 
 #: Commands applied per cycle at most; the rest wait for the next cycle (bounded work).
 COMMANDS_PER_CYCLE = 8
+
+
+@dataclass(frozen=True, slots=True)
+class CycleTrace:
+    """One cycle as traced: the targets sent, the state after the step, any drive fault seen."""
+
+    targets_mm: tuple[float, ...]
+    state: MachineState
+    drive_fault_seen: bool
 
 
 class CyclicDrives(DriveRequests, Protocol):
@@ -70,8 +80,8 @@ class Controller:
         self._moving = False
         self._curve_lock = threading.Lock()
         self.max_following_error_mm = [0.0] * len(config.axes)
-        self.sent_targets_mm: list[tuple[float, ...]] | None = None
-        """When a list, every cycle's targets are appended (tests and the demo summary)."""
+        self.trace: list[CycleTrace] | None = None
+        """When a list, every cycle appends what it saw and sent (tests, diagnostics)."""
 
     # -- any thread ------------------------------------------------------------------------
 
@@ -112,8 +122,9 @@ class Controller:
         targets = self.machine.step(feedback, tick.deadline_s)
         self.drives.write_targets(targets)
         self.drives.exchange()
-        if self.sent_targets_mm is not None:
-            self.sent_targets_mm.append(targets)
+        if self.trace is not None:
+            faulted = any(fb.fault is not None for fb in feedback)
+            self.trace.append(CycleTrace(targets, self.machine.state, faulted))
         self._track_moving()
         self._publish(feedback)
 

@@ -11,6 +11,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from runtime.commands import Command, CommandCode, CommandResult
 from runtime.config import MachineConfig, load_config
 from runtime.controller import Controller
@@ -34,6 +36,10 @@ class Harness:
         self.index = 0
         self.setpoints: list[Setpoint] = []
         """The feed's setpoint of every cycle stepped."""
+
+    def sent_targets(self) -> np.ndarray:
+        """(cycles, axes) targets the controller sent since tracing began."""
+        return np.array([t.targets_mm for t in self.controller.trace])
 
     @property
     def status(self) -> StatusSnapshot:

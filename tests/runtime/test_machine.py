@@ -19,7 +19,7 @@ from runtime.status import FaultKind, MachineState
 def rig():
     drives = FakeDrives()
     controller = Controller(sim_config(), drives)
-    controller.sent_targets_mm = []
+    controller.trace = []
     harness = Harness(controller)
     harness.cycle()
     yield harness, drives
@@ -188,7 +188,7 @@ def test_paper_curve_runs_to_its_exact_end(rig) -> None:
     h.cycle()
     assert [a.position_mm for a in drives.axes] == list(end)
     assert h.status.progress_permille == 1000
-    targets = np.array(h.controller.sent_targets_mm)
+    targets = h.sent_targets()
     steps = np.linalg.norm(np.diff(targets, axis=0), axis=1)
     assert steps.max() <= 100.0 * 0.004 * 1.001
 
@@ -199,14 +199,14 @@ def test_fault_mid_curve_stops_every_axis_without_jump(rig) -> None:
     feed_before = h.status.feed_mm_s
     assert feed_before > 50
     drives.inject_fault(2, emcy_code=0x8611, text="EMCY 0x8611 following error")
-    fault_cycle = len(h.controller.sent_targets_mm)
+    fault_cycle = len(h.controller.trace)
     h.cycle()
     status = h.status
     assert status.state is MachineState.ERROR_STOP
     assert status.fault.kind is FaultKind.DRIVE_FAULT and status.fault.emcy_code == 0x8611
     assert status.fault.axis == "Z"
     h.until(lambda s: s.feed_mm_s == 0.0, 60)
-    targets = np.array(h.controller.sent_targets_mm)
+    targets = h.sent_targets()
     steps = np.linalg.norm(np.diff(targets, axis=0), axis=1)
     assert steps.max() <= 100.0 * 0.004 * 1.001
     # Braking began in the cycle that saw the fault: from there on every step is shorter.

@@ -26,7 +26,7 @@ def harness():
     controller = Controller(sim_config(), FakeDrives())
     h = Harness(controller)
     h.standby_with_curve()
-    controller.sent_targets_mm = []
+    controller.trace = []
     yield h
     controller.close()
 
@@ -73,7 +73,7 @@ def test_hold_then_resume_stays_on_the_curve_and_smooth(harness: Harness) -> Non
     assert h.status.path_s_mm == held.path_s_mm
     h.command(CommandCode.RESUME)
     h.until(lambda s: s.state is MachineState.STANDBY, 2000)
-    positions = np.array(h.controller.sent_targets_mm)
+    positions = h.sent_targets()
     check_limits(positions, VMAX)
     check_on_curve_and_end(h)
 
@@ -90,10 +90,10 @@ def test_override_changes_mid_curve_never_step_the_feed(
         h.cycle(150)
         assert h.status.state is MachineState.MOVING
         # After the splice and the transition, the feed obeys the new vmax.
-        recent = realised_feed(np.array(h.controller.sent_targets_mm[-60:]), T)
+        recent = realised_feed(h.sent_targets()[-60:], T)
         assert recent.max() <= VMAX * percent / 100 * 1.001
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
-    positions = np.array(h.controller.sent_targets_mm)
+    positions = h.sent_targets()
     check_limits(positions, VMAX * max(overrides) / 100)
     check_on_curve_and_end(h)
 
@@ -108,6 +108,6 @@ def test_override_zero_stops_on_the_path_and_a_new_override_moves_on(harness: Ha
     assert h.status.state is MachineState.MOVING and h.status.feed_mm_s == 0.0
     h.command(CommandCode.SET_OVERRIDE, override_percent=80.0)
     h.until(lambda s: s.state is MachineState.STANDBY, 3000)
-    positions = np.array(h.controller.sent_targets_mm)
+    positions = h.sent_targets()
     check_limits(positions, VMAX)
     check_on_curve_and_end(h)
