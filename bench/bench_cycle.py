@@ -10,9 +10,7 @@ of ``--cycles`` periods, the cycles executed and the periods skipped. Variants:
   switch interval 0.5 ms); then with a CPU-bound Python thread beside it (a proxy for the
   planner worker) with and without SCHED_FIFO and the 0.5 ms switch interval, to show the GIL.
 - (b) the runtime's cycle and (c) the same with the planner worker busy on a long curve, both
-  through ``runtime.bench_support.run_runtime_loop(cycles, *, planner_busy) -> dict`` (keys
-  ``p50``, ``p99``, ``p99.9``, ``max`` in µs, ``cycles`` executed and ``missed_periods``, over
-  ``cycles`` periods) when that module exists.
+  through ``bench/runtime_loop.py`` (the simulated machine running a long curve).
   The ratio p99(b) / p99(a, real-time settings) is printed.
 
 Run: ``.venv/bin/python bench/bench_cycle.py [--cycles 10000] [--period-ms 4]`` (root, or
@@ -24,10 +22,8 @@ and whatever else runs: this is a measurement, not a test.
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
 
 from runtime.config import RealtimeConfig
@@ -118,17 +114,6 @@ def run_bare(variant: Variant, cycles: int, period_s: float) -> dict[str, float]
     return figures
 
 
-def runtime_loop() -> Callable[..., dict[str, float]] | None:
-    """``runtime.bench_support.run_runtime_loop`` if the runtime provides it, else None."""
-    try:
-        module = importlib.import_module("runtime.bench_support")
-    except ModuleNotFoundError as exc:
-        if exc.name != "runtime.bench_support":
-            raise
-        return None
-    return module.run_runtime_loop
-
-
 def format_row(label: str, figures: dict[str, float] | None) -> str:
     if figures is None:
         return f"{label:<52} {'not available':>61}"
@@ -159,14 +144,13 @@ def main(argv: list[str] | None = None) -> None:
         results[variant.label] = run_bare(variant, args.cycles, period_s)
         print(format_row(variant.label, results[variant.label]), flush=True)
 
-    run_runtime = runtime_loop()
+    from runtime_loop import run_runtime_loop
+
     for label, planner_busy in (
         ("b  runtime loop", False),
         ("c  runtime loop, planner busy", True),
     ):
-        figures = (
-            None if run_runtime is None else run_runtime(args.cycles, planner_busy=planner_busy)
-        )
+        figures = run_runtime_loop(args.cycles, planner_busy=planner_busy)
         results[label] = figures
         print(format_row(label, figures), flush=True)
 
