@@ -94,6 +94,10 @@ RPDO1_STRUCT = struct.Struct("<Hi")
 _TARGET_HISTORY = 16  # targets kept per axis for the following-error check
 
 
+#: Faults after which a drive must be configured again (it was lost, restarted or reset).
+RECONFIGURE_FAULT_KINDS = frozenset({FaultKind.HEARTBEAT_LOSS, FaultKind.NMT, FaultKind.BOOT})
+
+
 class AxisRequest(Enum):
     """What the caller asked an axis to do; the master steps the drive toward it."""
 
@@ -329,12 +333,45 @@ class Cia402Master:
             axis.supervisor.clear_fault()
         self._booted = True
 
-    def _wait_alive(self) -> None:
+    def recover(self) -> tuple[str, ...]:
+        """Bring back drives that were lost or restarted: reset their communication, wait for
+        their boot-up, configure them again by SDO and start them.
+
+        Blocking, outside the cycle (a service thread) while the cycle keeps running; the axes
+        concerned stay faulted until this returns, then their faults are cleared and their
+        enable request (if any) takes them up again from their actual position.
+
+        :returns: the names of the axes recovered (those with a heartbeat, NMT or boot fault).
+        :raises BootTimeout: a drive did not come back within boot_timeout_s.
+        :raises ConfigurationFailed: an SDO transfer was aborted or timed out.
+        :raises ConfigurationMismatch: an object read back differs from what was written.
+        :raises DriveError: a drive did not report OPERATIONAL after NMT start.
+        """
+        lost = [
+            axis
+            for axis in self._axes
+            if axis.supervisor.fault is not None
+            and axis.supervisor.fault.kind in RECONFIGURE_FAULT_KINDS
+        ]
+        for axis in lost:
+            axis.supervisor.alive.clear()
+            axis.node.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
+        self._wait_alive(lost)
+        for axis in lost:
+            self._configure(axis)
+            axis.node.nmt.send_command(NmtCommand.START)
+        self._wait_operational(lost)
+        for axis in lost:
+            axis.reset_pending = False
+            axis.supervisor.clear_fault()
+        return tuple(axis.spec.name for axis in lost)
+
+    def _wait_alive(self, axes: Sequence[_Axis] | None = None) -> None:
         timeout_s = self.settings.boot_timeout_s
         deadline = time.monotonic() + timeout_s
         silent = [
             axis.spec.node_id
-            for axis in self._axes
+            for axis in (self._axes if axes is None else axes)
             if not axis.supervisor.alive.wait(max(0.0, deadline - time.monotonic()))
         ]
         if silent:
@@ -366,10 +403,10 @@ class Cia402Master:
         axis.target_counts = position_counts
         axis.sent_counts = [position_counts] * _TARGET_HISTORY
 
-    def _wait_operational(self) -> None:
+    def _wait_operational(self, axes: Sequence[_Axis] | None = None) -> None:
         timeout_s = self.settings.boot_timeout_s
         deadline = time.monotonic() + timeout_s
-        for axis in self._axes:
+        for axis in self._axes if axes is None else axes:
             while True:
                 heartbeat = axis.supervisor.heartbeat
                 if heartbeat is not None and heartbeat.nmt_state == NmtState.OPERATIONAL:

@@ -20,8 +20,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
+from drives.errors import DriveError
+from drives.master import RECONFIGURE_FAULT_KINDS
 from planner.nurbs import NurbsCurve
-from runtime.commands import Command, CommandResult
+from runtime.commands import Command, CommandCode, CommandResult
 from runtime.config import MachineConfig
 from runtime.curves import LoadedCurve, prepare_curve
 from runtime.machine import AxisFeedbackLike, DriveRequests, Machine
@@ -50,6 +52,7 @@ class CyclicDrives(DriveRequests, Protocol):
     def read_feedback(self) -> Sequence[AxisFeedbackLike]: ...
     def write_targets(self, positions_mm: Sequence[float | None] | None) -> None: ...
     def exchange(self) -> None: ...
+    def recover(self) -> tuple[str, ...]: ...
 
 
 class Controller:
@@ -79,6 +82,7 @@ class Controller:
         self._heartbeat = 0
         self._moving = False
         self._curve_lock = threading.Lock()
+        self._recovery: threading.Thread | None = None
         self.max_following_error_mm = [0.0] * len(config.axes)
         self.trace: list[CycleTrace] | None = None
         """When a list, every cycle appends what it saw and sent (tests, diagnostics)."""
@@ -118,7 +122,9 @@ class Controller:
                 command = self._commands.get_nowait()
             except queue.Empty:
                 break
-            self.machine.apply(command)
+            result = self.machine.apply(command)
+            if command.code is CommandCode.RESET and result is CommandResult.DONE:
+                self._recover_lost_drives(feedback)
         targets = self.machine.step(feedback, tick.deadline_s)
         self.drives.write_targets(targets)
         self.drives.exchange()
@@ -127,6 +133,28 @@ class Controller:
             self.trace.append(CycleTrace(targets, self.machine.state, faulted))
         self._track_moving()
         self._publish(feedback)
+
+    def _recover_lost_drives(self, feedback: Sequence[AxisFeedbackLike]) -> None:
+        """Start configuring again, in a thread of its own, drives that were lost or restarted.
+
+        SDO transfers block, so they never run in the cycle; the machine's reset waits for the
+        drives to come up healthy meanwhile.
+        """
+        lost = any(
+            fb.fault is not None and fb.fault.kind in RECONFIGURE_FAULT_KINDS for fb in feedback
+        )
+        if not lost or (self._recovery is not None and self._recovery.is_alive()):
+            return
+        self._recovery = threading.Thread(target=self._recover, name="drive-recovery", daemon=True)
+        self._recovery.start()
+
+    def _recover(self) -> None:
+        try:
+            names = self.drives.recover()
+        except DriveError as exc:
+            logger.error("reset: drives not recovered: %s", exc)
+        else:
+            logger.info("reset: drives %s configured again", ", ".join(names))
 
     def on_overrun_limit(self, consecutive: int) -> None:
         """Called by the cyclic task when too many consecutive periods were missed.

@@ -46,7 +46,8 @@ logger = logging.getLogger(__name__)
 
 #: An approach shorter than this is skipped: the axes already stand at the curve's start.
 APPROACH_MIN_MM = 1e-6
-#: Enabling or resetting the drives must finish within this time.
+#: Enabling or resetting the drives must finish within this time, plus twice the boot timeout
+#: (a reset may have to configure a restarted drive again).
 RECOVERY_TIMEOUT_S = 3.0
 
 _FAULT_KINDS = {
@@ -106,6 +107,7 @@ class Machine:
         self._recovery: MachineState | None = None
         """Enabling or resetting toward this state (STANDBY or DISABLED) over the next cycles."""
         self._recovery_since_s: float | None = None
+        self._recovery_timeout_s = RECOVERY_TIMEOUT_S + 2 * config.can.boot_timeout_s
         self._quick_stopping = False
         self._continue = False
         """MOVING wants to follow the job on from where the feed rests, once the override > 0."""
@@ -253,7 +255,7 @@ class Machine:
             self.feed.rest_at(self._actual)
             self._held = self._actual
             self._enter(target, "enabled" if target is MachineState.STANDBY else "reset")
-        elif now_s - self._recovery_since_s > RECOVERY_TIMEOUT_S:
+        elif now_s - self._recovery_since_s > self._recovery_timeout_s:
             self._recovery = None
             waiting = [fb.axis for fb, on in zip(feedback, enabled, strict=True) if not on]
             faulted = [str(fb.fault) for fb in feedback if fb.fault is not None]

@@ -56,6 +56,10 @@ class FakeDrives:
         for axis in self.axes:
             axis.request = what
 
+    def recover(self) -> tuple[str, ...]:
+        self.requests.append("recover")
+        return ()
+
     # faults
     def inject_fault(self, index: int, *, emcy_code: int = 0x4210, text: str = "over-temperature"):
         axis = self.axes[index]
