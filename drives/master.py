@@ -362,7 +362,7 @@ class Cia402Master:
             axis.node.nmt.send_command(NmtCommand.START)
         self._wait_operational(lost)
         for axis in lost:
-            axis.reset_pending = False
+            # A pending fault reset stays: a drive that kept its FAULT state still needs it.
             axis.supervisor.clear_fault()
         return tuple(axis.spec.name for axis in lost)
 

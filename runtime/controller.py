@@ -83,6 +83,7 @@ class Controller:
         self._moving = False
         self._curve_lock = threading.Lock()
         self._recovery: threading.Thread | None = None
+        self._recovered = threading.Event()
         self.max_following_error_mm = [0.0] * len(config.axes)
         self.trace: list[CycleTrace] | None = None
         """When a list, every cycle appends what it saw and sent (tests, diagnostics)."""
@@ -117,6 +118,9 @@ class Controller:
     def step(self, tick: CycleTick) -> None:
         """One cycle; see the module docstring."""
         feedback = self.drives.read_feedback()
+        if self._recovered.is_set():
+            self._recovered.clear()
+            self.machine.drives_reconfigured()
         for _ in range(COMMANDS_PER_CYCLE):
             try:
                 command = self._commands.get_nowait()
@@ -155,6 +159,7 @@ class Controller:
             logger.error("reset: drives not recovered: %s", exc)
         else:
             logger.info("reset: drives %s configured again", ", ".join(names))
+            self._recovered.set()
 
     def on_overrun_limit(self, consecutive: int) -> None:
         """Called by the cyclic task when too many consecutive periods were missed.

@@ -192,6 +192,16 @@ class Machine:
             self._set_override(float(command.override_percent))
         return CommandResult.DONE
 
+    def drives_reconfigured(self) -> None:
+        """Lost drives were configured again during a reset: reset and enable them afresh
+        (their old requests did not survive the restart), with the timeout started anew."""
+        if self._recovery is None:
+            return
+        self.drives.request_fault_reset()
+        if self._power_on:
+            self.drives.request_enable()
+        self._recovery_since_s = None
+
     def raise_fault(
         self, kind: FaultKind, text: str, *, axis: str | None = None, emcy_code: int = 0
     ) -> None:

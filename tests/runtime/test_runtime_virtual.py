@@ -156,3 +156,28 @@ def test_drive_fault_stops_every_axis_then_reset(machine: RunningMachine) -> Non
     run_to_standby(machine)
     steps = np.linalg.norm(np.diff(sent(machine)[before_restart - 1 :], axis=0), axis=1)
     assert steps.max() <= VMAX * T * 1.001
+
+
+def test_lost_drive_stops_every_axis_and_reset_configures_it_again(
+    machine: RunningMachine,
+) -> None:
+    load_enable_start(machine)
+    machine.wait_for(lambda s: s.path_s_mm > 40.0, 10.0)
+    drive = machine.simulated.drives[3]
+    drive.stop_answering()
+    status = machine.wait_for(lambda s: s.state is MachineState.ERROR_STOP, 1.0)
+    assert status.fault.kind in (FaultKind.STALE_FEEDBACK, FaultKind.HEARTBEAT_LOSS)
+    assert status.fault.axis == "Z"
+    machine.wait_for(lambda s: s.feed_mm_s == 0.0, 1.0)
+    steps = np.linalg.norm(np.diff(sent(machine), axis=0), axis=1)
+    assert steps.max() <= VMAX * T * 1.001
+    # Heartbeat loss: 2.5 heartbeat periods of 100 ms.
+    lost = machine.wait_for(lambda s: "heartbeat" in s.axes[2].fault, 1.0)
+    assert lost.state is MachineState.ERROR_STOP
+    drive.resume_answering()
+    machine.command(CommandCode.RESET)
+    machine.wait_for(lambda s: s.state is MachineState.STANDBY, 10.0)
+    machine.command(CommandCode.START)
+    run_to_standby(machine)
+    end = machine.controller.machine.loaded.curve.end_point
+    assert np.array_equal(sent(machine)[-1], end)
