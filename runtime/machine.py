@@ -227,6 +227,7 @@ class Machine:
         self._actual = tuple(fb.position_mm for fb in feedback)
         for fb in feedback:
             if fb.fault is not None and self._counts_as_fault(fb):
+                self._refine_fault(fb)
                 self.raise_fault(
                     _FAULT_KINDS[fb.fault.kind],
                     str(fb.fault),
@@ -241,6 +242,21 @@ class Machine:
             self._on_feed_event(self.feed.take())
             self._follow_on()
         return self._compose_targets()
+
+    def _refine_fault(self, fb: AxisFeedbackLike) -> None:
+        """Keep the recorded fault up to date with its axis's diagnosis (stale feedback turns
+        out to be a lost heartbeat); stopping already happened when it was first seen."""
+        fault = self.fault
+        if (
+            self.state is MachineState.ERROR_STOP
+            and fault is not None
+            and fault.axis == fb.axis
+            and fault.text != str(fb.fault)
+        ):
+            self.fault = Fault(
+                _FAULT_KINDS[fb.fault.kind], str(fb.fault), fb.axis, fb.fault.emcy_code or 0
+            )
+            self.message = f"error stop: {self.fault.text}"
 
     def _counts_as_fault(self, fb: AxisFeedbackLike) -> bool:
         # While a reset is in progress, the old fault is expected until the drive clears it.
