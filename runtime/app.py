@@ -32,6 +32,7 @@ from runtime.commands import Command, CommandCode, CommandResult
 from runtime.config import MachineConfig
 from runtime.controller import Controller
 from runtime.curves import load_curve_file
+from runtime.errors import RuntimeFault
 from runtime.priorities import prioritise_threads
 from runtime.scheduler import CyclicTask
 from runtime.status import MachineState, StatusSnapshot
@@ -251,10 +252,8 @@ def run_machine(
             _log_state_changes(machine, stop_requested)
             logger.info("shutting down")
         return EXIT_OK
-    except DriveError as exc:
-        print(f"softmotion: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    except PlannerError as exc:
+    except (DriveError, PlannerError, RuntimeFault) as exc:
+        # A drive that does not boot, a bad curve, a port in use: say what, no traceback.
         print(f"softmotion: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     finally:
