@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from machine_process import connect_hmi
 
 from runtime.commands import ALLOWED, CommandCode, CommandResult
 from runtime.curves import load_curve_file
@@ -66,22 +67,9 @@ class Machine:
                 stderr=subprocess.STDOUT,
                 cwd=ROOT,
             )
-        self.client = self._connect()
-
-    def _connect(self) -> HmiClient:
-        deadline = time.monotonic() + BOOT_TIMEOUT_S
-        while True:
-            if self.process.poll() is not None:
-                raise AssertionError(f"softmotion run exited:\n{self.log.read_text()}")
-            client = HmiClient(port=self.port, timeout_s=5.0)
-            try:
-                client.connect()
-                return client
-            except Exception:
-                client.close()
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
+        self.client = connect_hmi(
+            self.process, self.port, self.log, timeout_s=BOOT_TIMEOUT_S, client_timeout_s=5.0
+        )
 
     def stop(self) -> None:
         self.client.close()

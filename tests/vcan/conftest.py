@@ -24,6 +24,11 @@ from drives.bus import vcan_status
 #: The SocketCAN interface the vcan tests use.
 VCAN_CHANNEL = "vcan0"
 
+#: Logs of processes a test started; their tails are added to the report of a failing test.
+DIAGNOSTIC_LOGS: list[Path] = []
+#: Lines of each log shown.
+DIAGNOSTIC_TAIL_LINES = 40
+
 #: Timeout factor inside the emulated VM, with a margin over the measured 14 to 17.
 VM_TIMING_FACTOR = 20.0
 
@@ -52,6 +57,20 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     skip = pytest.mark.skip(reason=f"SocketCAN {VCAN_CHANNEL} not usable: {reason}")
     for item in vcan_items:
         item.add_marker(skip)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[None]:
+    """Show the tails of the started processes' logs with a failure: inside the VM the
+    temporary files are gone once it stops."""
+    outcome = yield
+    report = outcome.get_result()
+    if not report.failed:
+        return
+    for log in DIAGNOSTIC_LOGS:
+        if log.exists():
+            tail = log.read_text(errors="replace").splitlines()[-DIAGNOSTIC_TAIL_LINES:]
+            report.sections.append((f"log {log.name}", "\n".join(tail)))
 
 
 @pytest.fixture(scope="session")
