@@ -116,6 +116,9 @@ class MotionFeed:
     buffer_high_periods = 500
     #: An override change takes effect about this many periods ahead (time for the worker).
     splice_lead_periods = 25
+    #: Motion starts once this many periods are planned (or the whole job is): a head start
+    #: that lets the worker fall behind for a while without the buffer running empty.
+    start_lead_periods = 50
 
     def __init__(
         self,
@@ -267,10 +270,12 @@ class MotionFeed:
         with self._lock:
             if self._failure is not None:
                 return FeedEvent.PLANNER_FAILED
+            if self.mode is FeedMode.STARTING and not self._started_locked():
+                return FeedEvent.NONE
             chunk = self._chunk
             if chunk is None or self._row >= len(chunk.block):
                 if not self._chunks:
-                    return FeedEvent.NONE if self.mode is FeedMode.STARTING else FeedEvent.UNDERRUN
+                    return FeedEvent.UNDERRUN
                 chunk = self._chunk = self._chunks.popleft()
                 self._row = 0
             block, i = chunk.block, self._row
@@ -294,6 +299,10 @@ class MotionFeed:
             self._cancel_locked()
         self.mode = FeedMode.IDLE
         return FeedEvent.FINISHED
+
+    def _started_locked(self) -> bool:
+        job = self._job
+        return self._buffered_rows >= self.start_lead_periods or (job is not None and job.done)
 
     def _take_braking(self) -> FeedEvent:
         profile = self._braking

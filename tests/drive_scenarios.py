@@ -92,6 +92,8 @@ class DriveScenarios:
     NODE_IDS: Sequence[int] = (1, 2, 3)
     AXIS_NAMES: Sequence[str] = ("X", "Y", "Z")
     PERIOD_S = 0.004
+    #: TPDO age (cycles) before stale feedback is a fault.
+    STALE_FEEDBACK_CYCLES = 3
     HEARTBEAT_MS = 100
     #: Multiplies every wait on wall-clock events that the transport can delay.
     TIMEOUT_SCALE = 1.0
@@ -121,6 +123,7 @@ class DriveScenarios:
             "master_heartbeat_ms": self.HEARTBEAT_MS,
             "boot_timeout_s": 5.0 * self.TIMEOUT_SCALE,
             "sdo_timeout_s": 0.3 * self.TIMEOUT_SCALE,
+            "stale_feedback_cycles": self.STALE_FEEDBACK_CYCLES,
         }
         values.update(overrides)
         return MasterSettings(**values)  # type: ignore[arg-type]

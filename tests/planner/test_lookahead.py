@@ -1,0 +1,172 @@
+"""Look-ahead: sensitive points, streaming, re-plan from a state, controlled stop."""
+
+from __future__ import annotations
+
+import time
+import tracemalloc
+from pathlib import Path as FilePath
+
+import numpy as np
+import pytest
+import setpoint_checks as sc
+import yaml
+
+from planner.lookahead import CHORD_MARGIN, _sensitive_points
+from planner.nurbs import NurbsCurve
+from planner.stream import Path, plan_setpoints, stream_setpoints
+from planner.types import Limits, MotionState, SetpointBlock
+
+T = 0.004
+LIMITS = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-3)
+PAPER = FilePath(__file__).resolve().parents[2] / "configs" / "curves" / "paper.yaml"
+#: Seconds allowed for the first block of a 100,000-span curve (issue item 5); overridable.
+FIRST_BLOCK_S = 0.8
+
+
+@pytest.fixture(scope="module")
+def curve() -> NurbsCurve:
+    return NurbsCurve.from_mapping(yaml.safe_load(PAPER.read_text()))
+
+
+@pytest.fixture(scope="module")
+def path(curve) -> Path:
+    return Path(curve, LIMITS, T)
+
+
+def long_curve(spans: int, seed: int = 3, step_mm: float = 2.0, turn_rad: float = 0.15):
+    rng = np.random.default_rng(seed)
+    n = spans + 3
+    heading = np.cumsum(rng.normal(0.0, turn_rad, n))
+    points = np.cumsum(np.c_[np.cos(heading), np.sin(heading)] * step_mm, axis=0)
+    knots = np.concatenate([[0.0] * 4, np.arange(1, n - 3), [n - 3.0] * 4])
+    return NurbsCurve.from_arrays(3, points, knots)
+
+
+def joined(first: SetpointBlock, k: int, second: SetpointBlock):
+    u = np.concatenate([first.u[: k + 1], second.u])
+    return u, np.vstack([first.position_mm[: k + 1], second.position_mm])
+
+
+def test_sensitive_point_at_the_curvature_maximum(path):
+    s_env, v_env = path.envelope.query(0.0, path.length_mm)
+    s, cap, fv = _sensitive_points(s_env, v_env, 0.0, path.length_mm, 100.0)
+    # The start and one curvature maximum; the limit is held over one step either side of it,
+    # so the maximum may show as the two edges of a short plateau.
+    assert len(s) in (2, 3) and s[-1] - s[1] < 2 * 0.4
+    u = path.arc.u_of_s(0.5 * (s[1] + s[-1]))[0]
+    assert u == pytest.approx(0.544, abs=0.01)
+    assert 1.0 / path.curve.curvature(u)[0] == pytest.approx(10.5, abs=0.1)
+    delta = 1e-3 * (1.0 - CHORD_MARGIN)  # planned a shade inside the chord error
+    assert cap[1] == pytest.approx(2 / T * np.sqrt(2 * 10.53 * delta - delta**2), rel=0.005)
+    assert not fv[0]
+
+
+def test_frequent_speed_change_region_is_flagged(curve):
+    limits = Limits(100.0, 1000.0, 20000.0, 1e-4)
+    wave = NurbsCurve.from_arrays(
+        3,
+        [[0, 0], [5, 3], [10, -3], [15, 3], [20, -3], [25, 3], [30, 0]],
+        [0, 0, 0, 0, 0.25, 0.5, 0.75, 1, 1, 1, 1],
+    )
+    p = Path(wave, limits, T)
+    s_env, v_env = p.envelope.query(0.0, p.length_mm)
+    _, _, fv = _sensitive_points(s_env, v_env, 0.0, p.length_mm, 100.0)
+    assert any(fv[1:])  # F_v_plan = 1 between curvature maxima that never reach vmax
+    block = plan_setpoints(p, limits, T)
+    fig = sc.measure(wave, block.u, block.position_mm, T)
+    assert fig.max_chord_error_mm <= 1e-4 * 1.01
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02 and fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+
+
+def test_blocks_stream_and_concatenate(path):
+    blocks = list(stream_setpoints(path, LIMITS, T, block_periods=64))
+    assert all(len(b) == 64 for b in blocks[:-1]) and blocks[-1].last
+    assert not any(b.last for b in blocks[:-1])
+    whole = SetpointBlock.concatenate(blocks)
+    assert np.allclose(np.diff(whole.t_s), T)
+    assert whole.t_s[0] == 0.0 and whole.s_mm[0] == 0.0
+
+
+@pytest.mark.parametrize(("k", "ratio"), [(60, 0.5), (150, 0.3), (250, 1.5), (300, 1.0)])
+def test_replan_from_a_row_with_an_override_is_smooth(curve, path, k, ratio):
+    first = plan_setpoints(path, LIMITS, T)
+    limits = LIMITS.with_feed_override(ratio)
+    second = plan_setpoints(path, limits, T, start=first.state(k))
+    assert second.t_s[0] == pytest.approx(T)
+    u, pos = joined(first, k, second)
+    fig = sc.measure(curve, u, pos, T)
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.max_chord_error_mm <= 1e-3 * 1.01
+    assert fig.end_error_mm <= 1e-6
+    feed = sc.realised_feed(second.position_mm, T)
+    settled = feed[int(0.2 / T) :]  # after the braking time from vmax
+    assert settled.max() <= max(limits.vmax_mm_s, 0.0) * 1.001
+
+
+def test_hold_stops_on_the_path_within_the_braking_distance(curve, path):
+    first = plan_setpoints(path, LIMITS, T)
+    k = int(np.argmax(first.feed_mm_s >= 100.0 - 1e-9)) + 5
+    state = first.state(k)
+    assert state.v_mm_s == pytest.approx(100.0) and state.a_mm_s2 == 0.0
+    stop = plan_setpoints(path, LIMITS, T, start=state, stop=True)
+    assert stop.last and stop.feed_mm_s[-1] == 0.0
+    assert stop.s_mm[-1] - state.s_mm == pytest.approx(7.5, abs=1e-6)
+    assert len(stop) <= int(np.ceil(0.150 / T)) + 1
+    u, pos = joined(first, k, stop)
+    fig = sc.measure(curve, u, pos, T)
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02 and fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.max_chord_error_mm <= 1e-3 * 1.01
+
+
+def test_hold_while_accelerating_and_resume(curve, path):
+    first = plan_setpoints(path, LIMITS, T)
+    k = int(np.argmax(first.accel_mm_s2 >= 999.0))
+    stop = plan_setpoints(path, LIMITS, T, start=first.state(k), stop=True)
+    resume = plan_setpoints(path, LIMITS, T, start=stop.state(-1))
+    u = np.concatenate([first.u[: k + 1], stop.u, resume.u])
+    pos = np.vstack([first.position_mm[: k + 1], stop.position_mm, resume.position_mm])
+    fig = sc.measure(curve, u, pos, T)
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02 and fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.end_error_mm <= 1e-6
+
+
+def test_stop_at_rest_and_at_the_end():
+    curve = NurbsCurve.from_arrays(1, [[0, 0], [3, 0]], [0, 0, 1, 1])
+    p = Path(curve, LIMITS, T)
+    assert len(plan_setpoints(p, LIMITS, T, stop=True)) == 1
+    block = plan_setpoints(p, LIMITS, T, start=MotionState(1.0, 60.0, 0.0), stop=True)
+    assert np.array_equal(block.position_mm[-1], curve.end_point)
+
+
+def test_path_rejects_other_geometry_limits(path):
+    with pytest.raises(ValueError, match="chord error"):
+        list(stream_setpoints(path, Limits(100.0, 1000.0, 20000.0, 2e-3), T))
+    with pytest.raises(ValueError, match="period_s"):
+        list(stream_setpoints(path, LIMITS, 0.001))
+    with pytest.raises(ValueError, match="update"):
+        list(stream_setpoints(path, LIMITS, T, update="euler"))
+
+
+def test_first_block_of_a_long_curve_is_fast():
+    curve = long_curve(100_000)
+    path = Path(curve, LIMITS, T)
+    # CPU time: what the planner costs, not how busy the machine running the test is.
+    started = time.process_time()
+    block = next(stream_setpoints(path, LIMITS, T))
+    elapsed = time.process_time() - started
+    assert len(block) == 256 and not np.isnan(block.position_mm).any()
+    assert elapsed < FIRST_BLOCK_S
+
+
+def test_streaming_memory_does_not_grow_with_the_length():
+    peaks = []
+    for spans in (300, 1200):  # both above one envelope chunk (256 spans)
+        curve = long_curve(spans, step_mm=15.0, turn_rad=0.05)
+        path = Path(curve, LIMITS, T)
+        tracemalloc.start()
+        for _ in stream_setpoints(path, LIMITS, T):
+            pass
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+    assert peaks[1] < 2.0 * peaks[0]
