@@ -1,0 +1,98 @@
+"""Feed limits along the path: chord error and vmax (eqs. (3)-(4)), and limits beyond the paper.
+
+Source: Wang, Zhao, Lu, Liu, China Mechanical Engineering 23(3), 2012, 299-304:
+- (3) chord-error feed V = (2/T) sqrt(rho² - (rho - delta)²) = (2/T) sqrt(2 rho delta - delta²),
+  the step V·T whose chord on the osculating circle of radius rho has sagitta delta;
+- (4) adaptive feed V(u) = min(vmax, value of (3)).
+Not in the paper (all off unless configured, so the paper's case is reproduced exactly):
+- normal acceleration: v² kappa <= A_n, so v <= sqrt(A_n / kappa);
+- per-axis velocity: |v t_k| <= V_k, so v <= V_k / |t_k| (t the unit tangent);
+- per-axis acceleration: the normal part v² kappa |n_k| is given half of A_k
+  (v <= sqrt(A_k / (2 kappa |n_k|)), n the unit normal) and the tangential part a t_k the other
+  half, through a tangential limit of min(amax, min_k A_k / 2) (:func:`tangential_accel_limit`).
+  Conservative, but it keeps every axis within its limit whatever the split.
+
+Units: kappa in 1/mm (inf at a sharp corner), delta in mm, T in s, feeds in mm/s. Pure,
+vectorised over numpy arrays; thread-safe.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planner.types import Limits
+
+
+def chord_error_feed(kappa: np.ndarray, delta: float, T: float) -> np.ndarray:
+    """Feed whose step V·T has chord error delta on the osculating circle, eq. (3).
+
+    Where the radius rho = 1/kappa is below delta the largest chord is the diameter, so the step
+    is capped at 2 rho (V = 2 rho / T); at a sharp corner (kappa = inf) the feed is 0.
+    """
+    kappa = np.asarray(kappa, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(kappa > 0.0, 1.0 / kappa, np.inf)
+        half_chord = np.where(
+            rho > delta, np.sqrt(2.0 * rho * delta - delta * delta), rho
+        )  # eq. (3)
+    return 2.0 / T * half_chord
+
+
+def adaptive_feed(kappa: np.ndarray, vmax: float, delta: float, T: float) -> np.ndarray:
+    """Adaptive feed V(u) = min(vmax, chord-error feed), eq. (4) (the no-look-ahead rule)."""
+    return np.minimum(vmax, chord_error_feed(kappa, delta, T))  # eq. (4)
+
+
+def normal_accel_feed(kappa: np.ndarray, A_n: float) -> np.ndarray:
+    """Feed keeping the normal acceleration v² kappa within A_n: sqrt(A_n / kappa)."""
+    with np.errstate(divide="ignore"):
+        return np.sqrt(A_n / np.asarray(kappa, dtype=np.float64))
+
+
+def tangential_accel_limit(limits: Limits) -> float:
+    """Tangential acceleration limit: amax, or min(amax, min_k A_k / 2) with axis limits."""
+    if limits.axis_amax_mm_s2 is None:
+        return limits.amax_mm_s2
+    return min(limits.amax_mm_s2, 0.5 * min(limits.axis_amax_mm_s2))
+
+
+def geometric_feed_limit(
+    d1: np.ndarray, d2: np.ndarray, limits: Limits, T: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Feed limit from the geometry (chord error and the optional limits), without vmax.
+
+    :param d1: (m, dim) first derivatives C'(u).
+    :param d2: (m, dim) second derivatives C''(u).
+    :returns: (kappa, v_limit), each (m,); kappa is inf and v_limit 0 where C'(u) = 0.
+    :raises ValueError: if an axis limit tuple does not match the curve dimension.
+    """
+    speed = np.linalg.norm(d1, axis=1)
+    moving = speed > 0.0
+    safe = np.where(moving, speed, 1.0)
+    tangent = d1 / safe[:, None]
+    along = np.sum(d2 * tangent, axis=1)
+    normal_vec = (d2 - along[:, None] * tangent) / (safe * safe)[:, None]
+    kappa = np.where(moving, np.linalg.norm(normal_vec, axis=1), np.inf)
+    v_limit = chord_error_feed(kappa, limits.chord_error_mm, T)
+    if limits.normal_accel_mm_s2 is not None:
+        v_limit = np.minimum(v_limit, normal_accel_feed(kappa, limits.normal_accel_mm_s2))
+    dim = d1.shape[1]
+    for name, values in (
+        ("axis_vmax_mm_s", limits.axis_vmax_mm_s),
+        ("axis_amax_mm_s2", limits.axis_amax_mm_s2),
+    ):
+        if values is not None and len(values) != dim:
+            raise ValueError(
+                f"limits: {name}: got {len(values)} values for a curve of dimension {dim}, "
+                "must be one per axis"
+            )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if limits.axis_vmax_mm_s is not None:
+            per_axis = np.asarray(limits.axis_vmax_mm_s) / np.abs(tangent)
+            v_limit = np.minimum(v_limit, per_axis.min(axis=1))
+        if limits.axis_amax_mm_s2 is not None:
+            # |kappa n_k| is the k-th component of the curvature vector normal_vec.
+            per_axis = np.sqrt(0.5 * np.asarray(limits.axis_amax_mm_s2) / np.abs(normal_vec))
+            v_limit = np.minimum(v_limit, per_axis.min(axis=1))
+    v_limit = np.where(moving, v_limit, 0.0)
+    return kappa, np.nan_to_num(v_limit, nan=0.0, posinf=np.inf)

@@ -1,0 +1,640 @@
+"""Look-ahead feed planning along the arc length: sensitive points, S-curve and cosine segments.
+
+Source: section 2.2 of Wang, Zhao, Lu, Liu, China Mechanical Engineering 23(3), 2012, 299-304.
+- Pre-interpolation: the feed limit of eq. (4) (and the optional limits of :mod:`planner.feed`)
+  is sampled on a grid of every knot span (:class:`FeedEnvelope`), the curvature maxima refined,
+  in place of the paper's step-by-step pre-interpolation at vmax.
+- Curvature-rising module: walking forward, a curvature maximum (a local minimum of the feed
+  limit below vmax) is a velocity-sensitive point u_end with its limited feed v_end.
+- Curvature-falling module: leaving a sensitive point, if a new curvature rise comes before the
+  feed limit reaches vmax again, the stretch is a region of frequent speed change, flag
+  F_v_plan = 1; such a stretch is re-planned with the cosine profile of eqs. (5)-(13)
+  (:mod:`planner.profiles.cosine`) where the S-curve would break the feed limit.
+- Between sensitive points, jerk-limited S-curve segments (:mod:`planner.profiles.scurve`),
+  zero acceleration at the points.
+- Look-ahead distance: at least the S-curve braking distance from vmax (7.5 mm with the
+  paper's limits), extended as long as the plan is not final.
+Beyond the paper (motion-planning.md §1, §9 row 6): a bidirectional scan with jerk-feasible
+speed changes (backward pass: the highest speed from which each next point can still be met;
+forward pass: the highest speed reachable), then every segment is checked against the feed
+limit on the arc length and refined (peak lowered, cosine re-plan, or a new sensitive point
+inserted at the worst violation) until v(s) <= v_limit(s).
+
+Streaming with bounded memory: a window of the path is planned assuming a stop at its end, and
+only the part that a longer look-ahead could no longer change is released (its speeds equal
+those planned with no stop at the window end); the window then moves on. Only the window's
+points and the envelope chunks it touches are held.
+
+Units: s in mm, feeds mm/s, A mm/s², J mm/s³, T s. Pure computation; one generator per stream,
+not thread-safe.
+
+Not modelled: non-zero acceleration at sensitive points (a conservative choice of the paper);
+per-axis jerk.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import OrderedDict
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from planner.arclength import ArcLengthTable
+from planner.feed import geometric_feed_limit
+from planner.nurbs import NurbsCurve
+from planner.profiles import Phase, PhaseTrain
+from planner.profiles.cosine import cosine_fits, cosine_max_high_speed, cosine_time_s
+from planner.profiles.scurve import (
+    braking_distance_mm,
+    cruise_speed,
+    max_ramp_speed,
+    min_ramp_speed,
+    ramp_distance_mm,
+    ramp_phases,
+    segment_phases,
+    settle_phases,
+    settled_speed,
+)
+
+#: Target spacing of the envelope grid along the path, mm.
+GRID_SPACING_MM = 0.2
+#: Grid samples per knot span, at least and at most.
+GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN = 8, 128
+#: Knot spans per envelope chunk, and chunks kept in the cache.
+CHUNK_SPANS, CACHE_CHUNKS = 256, 16
+#: Feed limits below this are treated as a stop, mm/s.
+MIN_FEED_MM_S = 1e-6
+#: 1 - cos of the tangent turn at a knot above which the knot is a sharp corner.
+CORNER_COS_TOL = 1e-12
+#: Ternary-search steps locating a cusp inside a span.
+CUSP_SEARCH_STEPS = 60
+#: Halvings of the grid towards a sharp corner (C'(u) = 0).
+CORNER_REFINEMENTS = 30
+#: The envelope dilation assumes feed overrides up to this ratio of the path's vmax.
+MAX_OVERRIDE_RATIO = 2.0
+#: Fraction of the chord error kept as margin when planning.
+CHORD_MARGIN = 0.03
+#: Window length in braking distances from vmax, and the lower bound of the window, mm.
+WINDOW_BRAKING_DISTANCES, MIN_WINDOW_MM = 4.0, 1.0
+#: Refinement rounds, and sensitive points, of one window before the failing segments are
+#: flattened under their lowest limit instead.
+MAX_REFINEMENTS, MAX_WINDOW_POINTS = 30, 300
+#: Relative slack of the feed-limit check.
+CHECK_SLACK = 1e-9
+#: Points closer than this are not inserted, mm.
+MIN_POINT_GAP_MM = 1e-7
+
+
+class FeedEnvelope:
+    """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
+
+    Each grid sample carries the feed limit of :func:`planner.feed.geometric_feed_limit`, lowered
+    to the smallest limit within one period's step (T times its own limit, capped at
+    ``MAX_OVERRIDE_RATIO`` x vmax) on either side and at its grid neighbours, so that a step and
+    the linear interpolation between samples never see a larger curvature than planned. Sharp
+    corners (feed limit 0) keep their single zero sample and a grid refined towards them.
+    """
+
+    def __init__(self, curve: NurbsCurve, arc: ArcLengthTable, limits, period_s: float) -> None:
+        self._curve = curve
+        self._arc = arc
+        self._limits = limits
+        self._T = period_s
+        self._breaks = curve.breakpoints
+        # Every breakpoint is a node of the arc-length table.
+        nodes = np.searchsorted(arc.u_grid, self._breaks)
+        self._s_breaks = np.array(arc.s_grid[np.minimum(nodes, len(arc.u_grid) - 1)])
+        self._step_cap_mm = MAX_OVERRIDE_RATIO * limits.vmax_mm_s * period_s
+        # The sampled curvature can miss a little of a very sharp peak: plan a shade inside delta.
+        self._planning_limits = replace(
+            limits, chord_error_mm=limits.chord_error_mm * (1.0 - CHORD_MARGIN)
+        )
+        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+
+    @property
+    def spans(self) -> int:
+        """Number of non-empty knot spans."""
+        return len(self._breaks) - 1
+
+    def query(self, s_lo: float, s_hi: float) -> tuple[np.ndarray, np.ndarray]:
+        """Grid (s, v_limit) covering [s_lo, s_hi], from the sample at or before s_lo."""
+        first = max(int(np.searchsorted(self._s_breaks, s_lo, side="right")) - 1, 0)
+        last = min(int(np.searchsorted(self._s_breaks, s_hi, side="left")), self.spans)
+        s_parts, v_parts = [], []
+        for chunk in range(first // CHUNK_SPANS, (max(last, first + 1) - 1) // CHUNK_SPANS + 1):
+            s, v = self._chunk(chunk)
+            if s_parts:
+                s, v = s[1:], v[1:]
+            s_parts.append(s)
+            v_parts.append(v)
+        s = np.concatenate(s_parts)
+        v = np.concatenate(v_parts)
+        i0 = max(int(np.searchsorted(s, s_lo, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(s, s_hi, side="left")) + 1, len(s))
+        return s[i0:i1], v[i0:i1]
+
+    def _chunk(self, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+        if chunk in self._cache:
+            self._cache.move_to_end(chunk)
+            return self._cache[chunk]
+        a = chunk * CHUNK_SPANS
+        b = min(a + CHUNK_SPANS, self.spans)
+        margin = self._step_cap_mm
+        a_ext = max(int(np.searchsorted(self._s_breaks, self._s_breaks[a] - margin)) - 1, 0)
+        b_ext = min(
+            int(np.searchsorted(self._s_breaks, self._s_breaks[b] + margin)) + 1, self.spans
+        )
+        s, v = self._samples(a_ext, b_ext)
+        keep = (s >= self._s_breaks[a]) & (s <= self._s_breaks[b])
+        result = (s[keep], v[keep])
+        self._cache[chunk] = result
+        if len(self._cache) > CACHE_CHUNKS:
+            self._cache.popitem(last=False)
+        return result
+
+    def _samples(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        breaks = self._breaks
+        lengths = np.diff(self._s_breaks[a : b + 1])
+        counts = np.clip(
+            np.ceil(lengths / GRID_SPACING_MM), GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN
+        ).astype(int)
+        span = np.repeat(np.arange(a, b), counts)
+        offsets = np.repeat(np.cumsum(counts) - counts, counts)
+        frac = (np.arange(counts.sum()) - offsets) / np.repeat(counts, counts)
+        u = np.append(breaks[span] + (breaks[span + 1] - breaks[span]) * frac, breaks[b])
+        kappa, v = self._limit(u)
+        # Curvature may jump at a knot (degree 2, repeated knots): keep the lower side's limit.
+        # A tangent that turns at a knot is a sharp corner: the feed must come to 0 there.
+        knot_rows = np.cumsum(counts)[:-1]
+        if knot_rows.size:
+            below = np.nextafter(u[knot_rows], -np.inf)
+            k_left, v_left = self._limit(below)
+            v[knot_rows] = np.minimum(v[knot_rows], v_left)
+            kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
+            d_left = self._curve.evaluate(below, order=1)[1]
+            d_right = self._curve.evaluate(u[knot_rows], order=1)[1]
+            norms = np.linalg.norm(d_left, axis=1) * np.linalg.norm(d_right, axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cos_turn = np.sum(d_left * d_right, axis=1) / norms
+            corner = (norms > 0.0) & (cos_turn < 1.0 - CORNER_COS_TOL)
+            v[knot_rows[corner]] = 0.0
+            kappa[knot_rows[corner]] = np.inf
+        peaks = self._refined_maxima(u, kappa)
+        if peaks.size:
+            # A second parabola, through the first vertex and two neighbours a tenth of the grid
+            # interval away: sharp peaks are not parabolas at the grid's scale.
+            i = np.clip(np.searchsorted(u, peaks), 1, len(u) - 1)
+            width = 0.1 * (u[i] - u[i - 1])
+            trio = np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1])
+            k_trio, _ = self._limit(trio.ravel())
+            second = self._refined_maxima(trio.ravel(), k_trio)
+            peaks = np.concatenate([peaks, trio.ravel(), second])
+        cusps = self._cusps(u)
+        if cusps.size:
+            u = np.concatenate([u, cusps])
+            v = np.concatenate([v, np.zeros(cusps.size)])
+            kappa = np.concatenate([kappa, np.full(cusps.size, np.inf)])
+            order = np.argsort(u, kind="stable")
+            u, v, kappa = u[order], v[order], kappa[order]
+        extra = np.concatenate([peaks, self._corner_grid(u, v)])
+        if extra.size:
+            extra = extra[(extra > u[0]) & (extra < u[-1])]
+            _, v2 = self._limit(extra)
+            u = np.concatenate([u, extra])
+            v = np.concatenate([v, v2])
+            order = np.argsort(u, kind="stable")
+            u, v = u[order], v[order]
+        s = self._arc.s_of_u(u)
+        # Samples that round to one arc length (next to a corner) become one, with the lowest
+        # limit; limits below MIN_FEED_MM_S are a stop.
+        v = np.where(v < MIN_FEED_MM_S, 0.0, v)
+        fresh = np.concatenate([[True], np.diff(s) > 0.0])
+        starts = np.flatnonzero(fresh)
+        v = np.minimum.reduceat(v, starts)
+        s = s[starts]
+        return s, self._dilated(s, v)
+
+    def _limit(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ders = self._curve.evaluate(u, order=2)
+        return geometric_feed_limit(ders[1], ders[2], self._planning_limits, self._T)
+
+    def _cusps(self, u: np.ndarray) -> np.ndarray:
+        """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).
+
+        Found where consecutive samples' tangents turn by more than 60 degrees, by ternary search
+        of the smallest |C'| between them.
+        """
+        d1 = self._curve.evaluate(u, order=1)[1]
+        dots = np.sum(d1[:-1] * d1[1:], axis=1)
+        norms = np.linalg.norm(d1[:-1], axis=1) * np.linalg.norm(d1[1:], axis=1)
+        turn = np.flatnonzero((norms > 0.0) & (dots < 0.5 * norms))
+        if turn.size == 0:
+            return np.empty(0)
+        lo, hi = u[turn].copy(), u[turn + 1].copy()
+        for _ in range(CUSP_SEARCH_STEPS):
+            a, b = lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0
+            speed = np.linalg.norm(self._curve.evaluate(np.concatenate([a, b]), order=1)[1], axis=1)
+            left = speed[: a.size] < speed[a.size :]
+            hi = np.where(left, b, hi)
+            lo = np.where(left, lo, a)
+        mid = 0.5 * (lo + hi)
+        before = self._curve.evaluate(u[turn], order=1)[1]
+        after = self._curve.evaluate(u[turn + 1], order=1)[1]
+        reverses = np.sum(before * after, axis=1) < 0.0
+        return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
+
+    @staticmethod
+    def _refined_maxima(u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+        """Vertex of the parabola through each interior local maximum of curvature."""
+        k0, k1, k2 = kappa[:-2], kappa[1:-1], kappa[2:]
+        peak = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
+        if peak.size == 0:
+            return peak.astype(float)
+        x0, x1, x2 = u[peak - 1], u[peak], u[peak + 1]
+        y0, y1, y2 = kappa[peak - 1], kappa[peak], kappa[peak + 1]
+        num = (x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)
+        den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            vertex = x1 - 0.5 * num / den
+        vertex = np.where(np.isfinite(vertex), vertex, x1)
+        return np.clip(vertex, x0, x2)
+
+    @staticmethod
+    def _corner_grid(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Samples at geometrically shrinking distances from each zero-feed (corner) sample."""
+        corners = np.flatnonzero(v == 0.0)
+        if corners.size == 0:
+            return np.empty(0)
+        left = u[np.maximum(corners - 1, 0)]
+        right = u[np.minimum(corners + 1, len(u) - 1)]
+        scale = 0.5 ** np.arange(1, CORNER_REFINEMENTS + 1)
+        c = u[corners][:, None]
+        return np.concatenate(
+            [(c - (c - left[:, None]) * scale).ravel(), (c + (right[:, None] - c) * scale).ravel()]
+        )
+
+    def _dilated(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Lower each sample to the limits a period's step from it can reach.
+
+        A step from s_i at feed w is w T long, so sample j constrains i when |s_i - s_j| <= w T:
+        the largest consistent w is min over j of max(v_j, |s_i - s_j| / T). Neighbours count
+        always (linear interpolation between samples), a corner's zero never (the plan stops
+        on it instead).
+        """
+        n = len(s)
+        out = v.copy()
+        if n < 2:
+            return out
+        width = int(np.max(np.searchsorted(s, s + self._step_cap_mm, side="right") - np.arange(n)))
+        masked = np.where(v > 0.0, v, np.inf)
+        for k in range(1, max(width, 1) + 1):
+            gap = s[k:] - s[:-k]
+            reach = gap <= self._step_cap_mm
+            if k > 1 and not reach.any():
+                break
+            if k == 1:
+                reach[:] = True
+            ahead = np.where(reach, np.maximum(masked[k:], gap / self._T), np.inf)
+            behind = np.where(reach, np.maximum(masked[:-k], gap / self._T), np.inf)
+            out[:-k] = np.minimum(out[:-k], ahead)
+            out[k:] = np.minimum(out[k:], behind)
+        return np.where(v > 0.0, out, 0.0)
+
+
+@dataclass(frozen=True)
+class PlanLimits:
+    """The limits one plan uses: feed cap (vmax), tangential A and J, period T."""
+
+    vmax_mm_s: float
+    A: float
+    J: float
+    T: float
+
+
+@dataclass(frozen=True)
+class SegmentPlan:
+    """A released stretch of motion: phases from (s, v, a) at time t, ending at s_end, v_end."""
+
+    phases: tuple[Phase, ...]
+    s_end_mm: float
+    v_end_mm_s: float
+
+
+class _Window:
+    """Sensitive points of one look-ahead window and the refinement state of its segments."""
+
+    def __init__(self, s: list[float], cap: list[float], fv_plan: list[bool]) -> None:
+        self.s = s
+        self.cap = cap
+        self.fv_plan = fv_plan  # per segment: region of frequent speed change (F_v_plan = 1)
+        self.peak_cap = [math.inf] * (len(s) - 1)
+        self.cosine = [0] * (len(s) - 1)  # 0: S-curve, 1: cosine, 2: cosine rejected
+
+    def insert(self, k: int, s_new: float, cap_new: float) -> None:
+        """Split segment k at s_new with a new sensitive point."""
+        self.s.insert(k + 1, s_new)
+        self.cap.insert(k + 1, cap_new)
+        self.fv_plan.insert(k + 1, self.fv_plan[k])
+        self.peak_cap[k : k + 1] = [math.inf, math.inf]
+        self.cosine[k : k + 1] = [0, 0]
+
+
+def _passes(s: list[float], cap: list[float], v_start: float, lim: PlanLimits) -> list[float]:
+    """Bidirectional scan: backward (can still meet the next point), then forward (reachable)."""
+    n = len(s)
+    back = list(cap)
+    for k in range(n - 2, 0, -1):
+        back[k] = min(cap[k], max_ramp_speed(back[k + 1], s[k + 1] - s[k], lim.A, lim.J))
+    v = [v_start] + [0.0] * (n - 1)
+    for k in range(1, n):
+        L = s[k] - s[k - 1]
+        v[k] = min(back[k], max_ramp_speed(v[k - 1], L, lim.A, lim.J))
+        if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], lim.A, lim.J) > L:
+            # Only a start state faster than the constraints allow gets here: brake hardest.
+            v[k] = max(v[k], min_ramp_speed(v[k - 1], L, lim.A, lim.J))
+    return v
+
+
+def _segment(w: _Window, k: int, v: list[float], lim: PlanLimits) -> tuple[list[Phase], float]:
+    """Phases of segment k and its highest planned feed."""
+    v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
+    if w.cosine[k] == 1:
+        t_a = cosine_time_s(v0, v1, L)  # eq. (12)
+        return [Phase(t_a, cosine_dv_mm_s=v1 - v0)], max(v0, v1)
+    vp = cruise_speed(v0, v1, L, min(lim.vmax_mm_s, w.peak_cap[k]), lim.A, lim.J)
+    return segment_phases(v0, vp, v1, L, lim.A, lim.J), max(v0, vp, v1)
+
+
+class _Checker:
+    """Compares a segment's planned feed with the envelope on the arc length."""
+
+    def __init__(self, s_env: np.ndarray, v_env: np.ndarray, lim: PlanLimits) -> None:
+        # A sharp corner's zero is a sensitive point where the plan stops; interpolating towards
+        # it would ask for a linear approach to rest, which no jerk-limited stop can follow.
+        moving = v_env > 0.0
+        if moving.sum() >= 2:
+            s_env, v_env = s_env[moving], v_env[moving]
+        self.s_env, self.v_env, self.lim = s_env, v_env, lim
+
+    def interior_min(self, s0: float, s1: float) -> float:
+        i0 = int(np.searchsorted(self.s_env, s0, side="left"))
+        i1 = int(np.searchsorted(self.s_env, s1, side="right"))
+        ends = np.interp([s0, s1], self.s_env, self.v_env)
+        inner = self.v_env[i0:i1]
+        return float(min(ends.min(), inner.min())) if inner.size else float(ends.min())
+
+    def worst(
+        self, s0: float, v0: float, phases: list[Phase], v_top: float, s1: float
+    ) -> tuple[float, float] | None:
+        """(s, v_limit) of the worst excess of the feed limit, or None if the segment holds."""
+        if self.interior_min(s0, s1) >= v_top * (1.0 + CHECK_SLACK):
+            return None
+        train = PhaseTrain(0.0, s0, v0, 0.0)
+        train.extend(phases)
+        n = int(min(max(math.ceil(train.t_s / (0.5 * self.lim.T)), 16), 20_000))
+        t = np.linspace(0.0, train.t_s, n + 1)
+        s, v, _, _ = train.sample(t)
+        limit = np.interp(s, self.s_env, self.v_env)
+        excess = v - limit * (1.0 + CHECK_SLACK) - 1e-9
+        i = int(np.argmax(excess))
+        if excess[i] <= 0.0:
+            return None
+        return float(s[i]), float(limit[i])
+
+
+def _sensitive_points(
+    s_env: np.ndarray, v_env: np.ndarray, s0: float, s_end: float, vcap: float
+) -> tuple[list[float], list[float], list[bool]]:
+    """Curvature-rising module: local minima of the feed limit below vcap in (s0, s_end).
+
+    Returns the points' s and caps, and per stretch between them the curvature-falling flag
+    F_v_plan (the limit stays below vcap between two maxima of curvature).
+    """
+    inside = (s_env > s0 + MIN_POINT_GAP_MM) & (s_env < s_end - MIN_POINT_GAP_MM)
+    v = v_env
+    prev = np.concatenate([[np.inf], v[:-1]])
+    nxt = np.concatenate([v[1:], [np.inf]])
+    is_min = (v <= prev) & (v <= nxt) & ~((v == prev) & (v == nxt)) & (v < vcap) & inside
+    idx = np.flatnonzero(is_min)
+    s = [s0, *s_env[idx].tolist()]
+    cap = [0.0, *np.minimum(v[idx], vcap).tolist()]
+    bounds = np.searchsorted(s_env, s)
+    fv = []
+    for a, b in itertools.pairwise(bounds):
+        fv.append(bool(b - a > 1 and v[a:b].max() < vcap))
+    return s, cap, fv
+
+
+def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> list[float]:
+    """Refine the window until every segment keeps under the feed limit; returns the speeds.
+
+    Each round checks every segment (last to first, so that splits do not shift the rest) and
+    repairs the failing ones; should the rounds run out, the failing segments are flattened to
+    the lowest limit they span, which always holds.
+    """
+    verdicts: dict[tuple, tuple[float, float] | None] = {}
+    v = _passes(w.s, w.cap, v_start, lim)
+    for _ in range(MAX_REFINEMENTS):
+        failing = _failing(w, v, checker, lim, verdicts)
+        if not failing:
+            return v
+        changed = False
+        for k, bad in failing:
+            changed |= _repair(w, k, v, bad, checker, lim)
+        v = _passes(w.s, w.cap, v_start, lim)
+        if not changed or len(w.s) > MAX_WINDOW_POINTS:
+            break
+    for k, _ in _failing(w, v, checker, lim, verdicts):
+        floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
+        w.cosine[k] = 2
+        w.peak_cap[k] = floor
+        for i in (k, k + 1):
+            if i > 0:
+                w.cap[i] = min(w.cap[i], floor)
+    return _passes(w.s, w.cap, v_start, lim)
+
+
+def _failing(
+    w: _Window, v: list[float], checker: _Checker, lim: PlanLimits, verdicts: dict
+) -> list[tuple[int, tuple[float, float]]]:
+    """Failing segments, last first, with their worst excess (s, v_limit)."""
+    out = []
+    for k in range(len(w.s) - 2, -1, -1):
+        L = w.s[k + 1] - w.s[k]
+        if w.cosine[k] == 1 and not cosine_fits(v[k], v[k + 1], L, lim.A, lim.J):
+            out.append((k, (w.s[k], 0.0)))
+            continue
+        key = (w.s[k], w.s[k + 1], v[k], v[k + 1], w.peak_cap[k], w.cosine[k])
+        if key not in verdicts:
+            phases, v_top = _segment(w, k, v, lim)
+            verdicts[key] = checker.worst(w.s[k], v[k], phases, v_top, w.s[k + 1])
+        if verdicts[key] is not None:
+            out.append((k, verdicts[key]))
+    return out
+
+
+def _lower_for_cosine(w: _Window, k: int, v: list[float], lim: PlanLimits) -> bool:
+    """Lower the faster end of a cosine segment so that a_act <= A and j_act <= J, eqs. (9)-(10)."""
+    L = w.s[k + 1] - w.s[k]
+    high = k if v[k] > v[k + 1] else k + 1
+    v_high = cosine_max_high_speed(min(v[k], v[k + 1]), L, lim.A, lim.J)
+    if high == 0 or min(v[k], v[k + 1]) + v_high <= 0.0:
+        w.cosine[k] = 2
+    else:
+        w.cap[high] = min(w.cap[high], v_high)
+    return True
+
+
+def _repair(
+    w: _Window, k: int, v: list[float], bad: tuple[float, float], checker: _Checker, lim
+) -> bool:
+    """One repair of segment k: cosine re-plan (F_v_plan), a new point, or a lower peak.
+
+    A new sensitive point goes to the worst excess with the lowest limit of the segment as its
+    cap (next to a stop, the lowest limit half-way to either end), so that it is below the limit
+    on both sides; refinement converges to a staircase under the limit where the limit keeps
+    changing. A segment that can no longer be split is held under its lowest limit by its peak.
+    """
+    s_bad, _ = bad
+    L = w.s[k + 1] - w.s[k]
+    if w.cosine[k] == 1:
+        if not cosine_fits(v[k], v[k + 1], L, lim.A, lim.J):
+            return _lower_for_cosine(w, k, v, lim)
+        w.cosine[k] = 2
+        return True
+    if w.cosine[k] == 0 and w.fv_plan[k] and v[k] + v[k + 1] > 0.0:
+        # F_v_plan = 1: re-plan this stretch with eqs. (5)-(13), unless that is slower than a
+        # staircase of S-curves could be (near a corner both end speeds may be ~0).
+        phases, _ = _segment(w, k, v, lim)
+        if cosine_time_s(v[k], v[k + 1], L) <= sum(p.duration_s for p in phases):
+            w.cosine[k] = 1
+        else:
+            w.cosine[k] = 2
+        return True
+    floor = checker.interior_min(w.s[k], w.s[k + 1])
+    if s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
+        cap = floor
+        if (k > 0 and w.cap[k] == 0.0) or (k + 2 < len(w.s) and w.cap[k + 1] == 0.0):
+            # Next to a stop the lowest limit is ~0: take the lowest one around the point only.
+            reach = 0.5 * min(s_bad - w.s[k], w.s[k + 1] - s_bad)
+            cap = checker.interior_min(s_bad - reach, s_bad + reach)
+        w.insert(k, s_bad, min(cap, lim.vmax_mm_s))
+        return True
+    if max(v[k], v[k + 1]) <= floor * (1.0 + CHECK_SLACK):
+        if w.peak_cap[k] > floor * (1.0 + 1e-12):
+            w.peak_cap[k] = floor
+            return True
+        return False
+    for i in (k, k + 1):
+        if i > 0 and w.cap[i] > floor:
+            w.cap[i] = floor
+            return True
+    return False
+
+
+def _released(
+    w: _Window, v: list[float], upper: list[float], lim: PlanLimits, final: bool
+) -> tuple[list[SegmentPlan], int]:
+    """Segments a longer look-ahead can no longer change, and the point index they end on."""
+    out: list[SegmentPlan] = []
+    n = len(w.s)
+    k = 0
+    while k < n - 1:
+        if not final and (k + 1 == n - 1 or abs(v[k + 1] - upper[k + 1]) > 1e-12 * lim.vmax_mm_s):
+            break
+        phases, _ = _segment(w, k, v, lim)
+        out.append(SegmentPlan(tuple(phases), w.s[k + 1], v[k + 1]))
+        k += 1
+    return out, k
+
+
+def _cruise_cut(w: _Window, k: int, v: list[float], lim: PlanLimits) -> SegmentPlan | None:
+    """The first half of segment k when it cruises at a peak the window end does not lower."""
+    if w.cosine[k] == 1:
+        return None
+    v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
+    v_cap = min(lim.vmax_mm_s, w.peak_cap[k])
+    vp = cruise_speed(v0, v1, L, v_cap, lim.A, lim.J)
+    if vp < v_cap * (1.0 - 1e-12) or vp <= 0.0:
+        return None
+    up_mm = ramp_distance_mm(v0, vp, lim.A, lim.J)
+    cruise_mm = L - up_mm - ramp_distance_mm(vp, v1, lim.A, lim.J)
+    if cruise_mm <= 2.0 * MIN_POINT_GAP_MM:
+        return None
+    phases = [*ramp_phases(v0, vp, lim.A, lim.J), Phase(0.5 * cruise_mm / vp, 0.0)]
+    return SegmentPlan(tuple(phases), w.s[k] + up_mm + 0.5 * cruise_mm, vp)
+
+
+def plan_segments(
+    envelope: FeedEnvelope,
+    length_mm: float,
+    lim: PlanLimits,
+    s_start: float,
+    v_start: float,
+    a_start: float,
+    *,
+    stop: bool,
+) -> Iterator[SegmentPlan]:
+    """Released stretches of the motion from the start state to rest, in order.
+
+    The first stretch brings the start acceleration to zero (jerk-limited); then windows of the
+    path are planned and released. With ``stop`` the motion comes to rest as soon as the limits
+    allow (the jerk-limited braking distance), or at the curve end if that comes first.
+    """
+    A, J = lim.A, lim.J
+    settle = settle_phases(a_start, J)
+    s, v = s_start, v_start
+    if settle:
+        train = PhaseTrain(0.0, s, v, a_start)
+        train.extend(settle)
+        s, v = min(train.s_mm, length_mm), settled_speed(v_start, a_start, J)
+        yield SegmentPlan(tuple(settle), s, v)
+    window_mm = max(
+        WINDOW_BRAKING_DISTANCES * braking_distance_mm(lim.vmax_mm_s, A, J), MIN_WINDOW_MM
+    )
+    # A hair beyond the braking distance, so that round-off never makes the stop look infeasible.
+    brake_mm = braking_distance_mm(v, A, J) * (1.0 + 1e-9) + 1e-9
+    stop_at = min(s + brake_mm, length_mm) if stop else length_mm
+    extra = 0.0
+    while s < stop_at or v > 0.0:
+        if s >= length_mm:
+            break
+        s_end = min(s + window_mm + extra, stop_at)
+        final = s_end >= stop_at
+        s_env, v_env = envelope.query(s, s_end)
+        pts, cap, fv = _sensitive_points(s_env, v_env, s, s_end, lim.vmax_mm_s)
+        if s_end - pts[-1] > MIN_POINT_GAP_MM:
+            pts.append(s_end)
+            cap.append(0.0)
+            fv.append(False)
+        else:
+            cap[-1] = 0.0
+        w = _Window(pts, cap, fv)
+        checker = _Checker(s_env, v_env, lim)
+        v_plan = _refine(w, checker, v, lim)
+        if final:
+            if v_plan[-1] > 1e-9:
+                # Too fast to stop where planned (start beyond the constraints): stop later.
+                stop_at = min(stop_at + braking_distance_mm(v_plan[-1], A, J), length_mm)
+                extra = 0.0
+                if s_end < length_mm:
+                    continue
+            segments, k = _released(w, v_plan, v_plan, lim, final=True)
+            yield from segments
+            return
+        upper_caps = list(w.cap)
+        upper_caps[-1] = lim.vmax_mm_s
+        upper = _passes(w.s, upper_caps, v, lim)
+        segments, k = _released(w, v_plan, upper, lim, final=False)
+        cut = _cruise_cut(w, k, v_plan, lim) if k < len(w.s) - 1 else None
+        if cut is not None:
+            segments.append(cut)
+        if not segments:
+            extra = 2.0 * (extra + window_mm)
+            continue
+        extra = 0.0
+        yield from segments
+        s, v = segments[-1].s_end_mm, segments[-1].v_end_mm_s

@@ -1,0 +1,75 @@
+"""Feed limits: eqs. (3)-(4), normal acceleration and per-axis limits."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from planner.feed import (
+    adaptive_feed,
+    chord_error_feed,
+    geometric_feed_limit,
+    normal_accel_feed,
+    tangential_accel_limit,
+)
+from planner.types import Limits
+
+T = 0.004
+
+
+def test_chord_error_feed_is_eq_3():
+    rho, delta = 10.5, 1e-3
+    v = chord_error_feed(np.array([1 / rho]), delta, T)[0]
+    assert v == pytest.approx(2 / T * math.sqrt(rho**2 - (rho - delta) ** 2))
+    # The step V T has sagitta delta on the circle of radius rho.
+    half = v * T / 2
+    assert rho - math.sqrt(rho**2 - half**2) == pytest.approx(delta)
+
+
+def test_full_feed_needs_20_mm_radius_at_1_micron():
+    assert chord_error_feed(np.array([1 / 20.0]), 1e-3, T)[0] == pytest.approx(100.0, rel=1e-4)
+
+
+def test_corner_and_straight_line():
+    v = chord_error_feed(np.array([math.inf, 0.0]), 1e-3, T)
+    assert v[0] == 0.0 and v[1] == math.inf
+    assert adaptive_feed(np.array([0.0]), 100.0, 1e-3, T)[0] == 100.0  # eq. (4)
+
+
+def test_normal_acceleration_limit():
+    assert normal_accel_feed(np.array([1 / 10.5]), 1000.0)[0] == pytest.approx(math.sqrt(10500.0))
+
+
+def test_optional_limits_are_off_by_default_and_apply_when_set():
+    d1 = np.array([[3.0, 4.0]])
+    d2 = np.array([[-4.0, 3.0]])  # circle of radius 5 at this point
+    paper = Limits(100.0, 1000.0, 20000.0, 1e-3)
+    kappa, v = geometric_feed_limit(d1, d2, paper, T)
+    assert kappa[0] == pytest.approx(1 / 5)
+    assert v[0] == pytest.approx(chord_error_feed(kappa, 1e-3, T)[0])
+    strict = Limits(
+        100.0,
+        1000.0,
+        20000.0,
+        1e-3,
+        normal_accel_mm_s2=500.0,
+        axis_vmax_mm_s=(10.0, 50.0),
+        axis_amax_mm_s2=(800.0, 800.0),
+    )
+    _, v2 = geometric_feed_limit(d1, d2, strict, T)
+    tangent = np.array([0.6, 0.8])
+    expected = min(v[0], math.sqrt(500.0 * 5), 10.0 / tangent[0], math.sqrt(400.0 / (0.2 * 0.8)))
+    assert v2[0] == pytest.approx(expected)
+    assert tangential_accel_limit(strict) == 400.0
+    assert tangential_accel_limit(paper) == 1000.0
+
+
+def test_limits_validation_names_the_field():
+    with pytest.raises(ValueError, match="jmax_mm_s3"):
+        Limits(100.0, 1000.0, -1.0, 1e-3)
+    with pytest.raises(ValueError, match=r"axis_vmax_mm_s\[1\]"):
+        Limits(100.0, 1000.0, 20000.0, 1e-3, axis_vmax_mm_s=(1.0, math.nan))
+    lim = Limits(100.0, 1000.0, 20000.0, 1e-3).with_feed_override(0.5)
+    assert (lim.vmax_mm_s, lim.amax_mm_s2, lim.jmax_mm_s3) == (50.0, 1000.0, 20000.0)

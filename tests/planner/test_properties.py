@@ -1,0 +1,63 @@
+"""Property tests: the setpoint guarantees on random valid curves (seeded hypothesis)."""
+
+from __future__ import annotations
+
+import numpy as np
+import setpoint_checks as sc
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from planner.nurbs import NurbsCurve
+from planner.stream import Path, plan_setpoints
+from planner.types import Limits
+
+T = 0.004
+
+
+@st.composite
+def curves(draw) -> NurbsCurve:
+    degree = draw(st.integers(1, 5))
+    dim = draw(st.sampled_from([2, 3]))
+    n = draw(st.integers(degree + 1, degree + 5))
+    coords = st.floats(-30.0, 30.0, allow_nan=False, width=32)
+    points = np.array(
+        draw(st.lists(st.lists(coords, min_size=dim, max_size=dim), min_size=n, max_size=n))
+    )
+    if n >= 3 and draw(st.booleans()):
+        # A sharp corner: a control point repeated up to degree times.
+        i = draw(st.integers(1, n - 2))
+        reps = draw(st.integers(1, degree))
+        points = np.insert(points, i, np.repeat(points[i : i + 1], reps, axis=0), axis=0)
+        n = len(points)
+    weights = np.array(draw(st.lists(st.floats(0.3, 3.0), min_size=n, max_size=n)))
+    interior = draw(
+        st.lists(st.floats(0.05, 0.95), min_size=n - degree - 1, max_size=n - degree - 1)
+    )
+    knots = np.concatenate([[0.0] * (degree + 1), sorted(interior), [1.0] * (degree + 1)])
+    _, repeats = np.unique(knots[degree + 1 : n], return_counts=True)
+    assume(repeats.max(initial=0) <= degree)
+    assume(np.ptp(points, axis=0).max() > 0.5)
+    # Corners come from repeated points; a control polygon folding back on itself (a cusp or a
+    # micro-loop inside a span) is outside these properties (a known limit of the planner).
+    legs = np.diff(points, axis=0)
+    legs = legs[np.linalg.norm(legs, axis=1) > 0.0]
+    unit = legs / np.linalg.norm(legs, axis=1)[:, None]
+    assume((np.sum(unit[:-1] * unit[1:], axis=1) > -0.8).all())
+    return NurbsCurve.from_arrays(degree, points, np.sort(knots), weights)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    curve=curves(), delta=st.sampled_from([1e-4, 1e-3, 1e-2]), vmax=st.sampled_from([20.0, 100.0])
+)
+def test_random_curves_keep_every_limit(curve, delta, vmax):
+    limits = Limits(vmax_mm_s=vmax, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=delta)
+    block = plan_setpoints(Path(curve, limits, T), limits, T)
+    assert np.isfinite(block.position_mm).all() and np.isfinite(block.u).all()
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_feed_mm_s <= vmax * 1.001
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.max_chord_error_mm <= delta * 1.01
+    assert fig.end_error_mm <= 1e-6
+    assert block.last and block.feed_mm_s[-1] == 0.0
