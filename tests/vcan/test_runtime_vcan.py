@@ -8,16 +8,24 @@ reset), because starting the processes is the slowest part inside the emulated V
 
 Timing inside the VM (``SOFTMOTION_VCAN_VM=1``): the CPU is emulated (no KVM), Python runs about
 15 times slower on one virtual CPU shared by four processes, and the guest's timer wake-ups are
-coarse. So there the machine runs a 20 ms cycle instead of 4 ms (5x) on a quarter circle with a
-10 µm chord error instead of the paper's curve (see ``CURVE``), the drive heartbeat is
-1000 ms instead of 100 ms (10x), the following-error window is 5 mm instead of 1 mm (a period
-is 2 mm at full feed), the feedback may be 10 cycles old, boot and
-recovery timeouts are 60 s, the cycle may miss up to 25 consecutive periods before it stops
-the machine (3 on a host), and the runtime keeps the normal scheduler (a SCHED_FIFO process would
-starve the drive processes on the VM's single CPU). The frame checks are the same everywhere;
-the SYNC-period bounds are relative to the configured period: mean within 2 % of it, no two
-SYNCs closer than half a period (the cycle never bursts), and the jitter is reported, not
-bounded, because it measures the VM's scheduler, not ours.
+coarse. So there, and only there:
+
+- the cycle is 20 ms instead of 4 ms (5x), and the curve is a quarter circle with a 10 µm chord
+  error instead of the paper's curve (see ``CURVE``);
+- the drive and master heartbeats are 1000 ms instead of 100 ms (10x), the feedback may be 10
+  cycles old, and boot and recovery timeouts are 60 s;
+- the following-error window is 5 mm instead of 1 mm (one period is 2 mm at full feed, and a
+  TPDO delivered after the next SYNC is compared with the next target);
+- the cycle may miss up to 100 consecutive periods (2 s) before it stops the machine, instead of
+  3: the emulated VM was seen to stall the process for half a second; the drives' SYNC-loss
+  limit is 100 periods instead of 10 for the same reason;
+- the runtime keeps the normal scheduler: a SCHED_FIFO process would starve the drive processes
+  on the VM's single CPU.
+
+The frame checks are the same everywhere. The SYNC-period bounds are relative to the configured
+period: mean (or median, when periods were skipped) within 2 % of it, and no two SYNCs closer
+than half a period (the cycle never bursts); the jitter is reported, not bounded, because inside
+the VM it measures the emulator's scheduler, not ours.
 """
 
 from __future__ import annotations
@@ -81,7 +89,7 @@ class VcanMachine:
         self.port = free_port()
         document["modbus"]["port"] = self.port
         document["cycle"]["period_ms"] = PERIOD_MS
-        document["cycle"]["overrun_limit"] = 25 if IN_VM else 3
+        document["cycle"]["overrun_limit"] = 100 if IN_VM else 3
         if IN_VM:
             # One virtual CPU stands for the IPC and three drives: a SCHED_FIFO runtime would
             # starve the drive processes, which on a real bus run on hardware of their own.
@@ -139,9 +147,9 @@ class VcanMachine:
                 "socketcan",
                 "--channel",
                 VCAN_CHANNEL,
-                # SYNC loss after 10 periods: the runtime's own overrun limit comes first.
+                # SYNC loss after that many periods: the runtime's overrun limit comes first.
                 "--sync-timeout-factor",
-                "30" if IN_VM else "10",
+                "100" if IN_VM else "10",
                 "--log-level",
                 "WARNING",
             ],
