@@ -18,7 +18,7 @@ What is applied (reference: modbus-hmi.md §8; OpenPLC v3 applies SCHED_FIFO and
   worker); the default is 5 ms, more than a period. Applied unless the caller passes None: it
   needs no privilege.
 - The garbage-collector policy while moving (:class:`GcPolicy`): ``freeze`` (gc.freeze +
-  gc.disable while moving, unfreeze + enable at rest), ``disable`` (gc.disable while moving) or
+  gc.disable while moving, enable at rest, never unfreeze), ``disable`` (gc.disable while moving) or
   ``normal``. Collections then happen at rest only.
 
 Each setting yields exactly one report line and one log record: ``info`` when applied or not
@@ -56,7 +56,7 @@ MCL_ONFAULT = 4
 
 
 _GC_DESCRIPTIONS = {
-    "freeze": "gc.freeze() + gc.disable() while moving, collection at rest",
+    "freeze": "gc.freeze() + gc.disable() while moving, young collections only at rest",
     "disable": "gc.disable() while moving, collection at rest",
     "normal": "untouched: collections may pause any cycle",
 }
@@ -205,9 +205,11 @@ class GcPolicy:
     """The garbage collector's behaviour while moving; process-wide, O(1) per change.
 
     ``freeze``: on motion start gc.freeze() (every live object to the permanent generation, so
-    even an explicit collection stays short) and gc.disable(); at rest gc.unfreeze() and
-    gc.enable(), so garbage made during motion is collected then. ``disable``: gc.disable()
-    while moving only. ``normal``: untouched.
+    even an explicit collection stays short) and gc.disable(); at rest gc.enable() only. The
+    frozen objects are never unfrozen: a full collection of the whole heap, in whichever thread
+    happens to allocate (the cyclic one included), would stall the cycle for tens of
+    milliseconds; the price is that objects frozen while alive and dropped later are not freed.
+    ``disable``: gc.disable() while moving only. ``normal``: untouched.
     """
 
     def __init__(self, mode: str) -> None:
@@ -237,11 +239,8 @@ class GcPolicy:
             if self.mode == "freeze":
                 gc.freeze()
             gc.disable()
-        else:
-            if self.mode == "freeze":
-                gc.unfreeze()
-            if self._was_enabled:
-                gc.enable()
+        elif self._was_enabled:
+            gc.enable()
 
     def restore(self) -> None:
         """Back to the rest state (GC as it was before motion)."""

@@ -22,10 +22,11 @@ coarse. So there, and only there:
 - the runtime keeps the normal scheduler: a SCHED_FIFO process would starve the drive processes
   on the VM's single CPU.
 
-The frame checks are the same everywhere. The SYNC-period bounds are relative to the configured
-period: mean (or median, when periods were skipped) within 2 % of it, and no two SYNCs closer
-than half a period (the cycle never bursts); the jitter is reported, not bounded, because inside
-the VM it measures the emulator's scheduler, not ours.
+The frame checks are the same everywhere, and so are the SYNC checks that do not depend on the
+clock: one SYNC per executed cycle, and no burst (any ten SYNCs span at least nine periods). On
+a host the intervals are also bounded (median within 2 % of the period, none shorter than half
+a period); inside the VM they are only reported: a thread preempted between its deadline and
+its SYNC there shortens the next interval, so they measure the emulator's scheduler, not ours.
 """
 
 from __future__ import annotations
@@ -231,10 +232,12 @@ def test_curve_runs_to_the_end_with_exact_frames(
     assert client.command(CommandCode.ENABLE).result is CommandResult.DONE
     machine.wait_for(lambda s: s.snapshot.state is S.STANDBY, 10, "STANDBY")
     listener.clear()
+    cycles_before = client.status().snapshot.stats.cycles
     run_paper_to_the_end(machine)
     time.sleep(10 * PERIOD_MS / 1000 * TIMEOUT_SCALE)
-    frames = listener.frames()
     status = client.status().snapshot
+    frames = listener.frames()
+    cycles_run = status.stats.cycles - cycles_before
     for axis, target in zip(status.axes, end_counts(), strict=True):
         assert abs(axis.actual_mm * COUNTS_PER_MM - target) <= 1.0, (axis.name, axis.actual_mm)
 
@@ -268,11 +271,15 @@ def test_curve_runs_to_the_end_with_exact_frames(
             f"{jitter_ms:.3f} ms, p99 {np.percentile(intervals_ms, 99):.3f} ms, "
             f"min {intervals_ms.min():.3f} ms, max {intervals_ms.max():.3f} ms"
         )
-    # Skipped periods stretch an interval by whole periods; the mean over the run counts them.
-    assert math.isclose(mean_ms, PERIOD_MS, rel_tol=0.02) or (
-        statistics.median(intervals_ms.tolist()) == pytest.approx(PERIOD_MS, rel=0.02)
-    )
-    assert intervals_ms.min() >= PERIOD_MS / 2, "SYNCs closer than half a period: a burst"
+    # One SYNC per executed cycle (the two status reads bracket the recording within a cycle
+    # or two), and never a catch-up burst: any ten SYNCs span at least nine periods.
+    assert abs(len(syncs) - cycles_run) <= 2, (len(syncs), cycles_run)
+    spans_ms = (times_s[10:] - times_s[:-10]) * 1000
+    assert spans_ms.min() >= 9 * PERIOD_MS, "more than ten SYNCs in nine periods: a burst"
+    if not IN_VM:
+        # Skipped periods stretch an interval by whole periods; the median ignores them.
+        assert statistics.median(intervals_ms.tolist()) == pytest.approx(PERIOD_MS, rel=0.02)
+        assert intervals_ms.min() >= PERIOD_MS / 2, "SYNCs closer than half a period: a burst"
 
 
 def test_injected_drive_fault_stops_every_axis(machine: VcanMachine, listener: CanListener) -> None:
