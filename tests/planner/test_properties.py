@@ -47,7 +47,14 @@ def curves(draw) -> NurbsCurve:
     return NurbsCurve.from_arrays(degree, points, np.sort(knots), weights)
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+# derandomize: the same examples on every run, so that CI is reproducible; searching further is
+# done by hand (random seeds) and what it found is stated in the curve strategy above.
+@settings(
+    max_examples=25,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+)
 @given(
     curve=curves(), delta=st.sampled_from([1e-4, 1e-3, 1e-2]), vmax=st.sampled_from([20.0, 100.0])
 )
