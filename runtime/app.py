@@ -11,6 +11,7 @@ simulated machine and prints a summary.
 
 from __future__ import annotations
 
+import gc
 import logging
 import signal
 import threading
@@ -33,7 +34,7 @@ from runtime.config import MachineConfig
 from runtime.controller import Controller
 from runtime.curves import load_curve_file
 from runtime.errors import RuntimeFault
-from runtime.priorities import prioritise_threads
+from runtime.priorities import prioritise_threads, restore_main_thread
 from runtime.scheduler import CyclicTask
 from runtime.status import MachineState, StatusSnapshot
 
@@ -201,7 +202,15 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
             hmi.start()
             stack.callback(hmi.stop)
             running.hmi = hmi
-        prioritise_threads(config.cycle.realtime.priority)
+        # The main thread too: a thread of this process preempted while it holds the
+        # interpreter lock keeps the cyclic thread waiting (it only waits and reports).
+        if prioritise_threads(config.cycle.realtime.priority, include_main=True):
+            stack.callback(restore_main_thread)
+        if config.cycle.realtime.gc != "normal":
+            # Everything alive after start-up goes to the permanent generation: no later full
+            # collection (in whichever thread allocates, the cyclic one included) scans it.
+            gc.collect()
+            gc.freeze()
         task.start()
         stack.callback(task.stop)
         running._stack = stack.pop_all()
@@ -229,9 +238,6 @@ def run_machine(
     }
     try:
         with start_machine(config) as machine:
-            # This process is the machine: its main thread must not hold the interpreter lock
-            # while preempted either.
-            prioritise_threads(config.cycle.realtime.priority, include_main=True)
             logger.info(
                 "machine running: %d axes on %s/%s, Modbus TCP %s",
                 len(config.axes),

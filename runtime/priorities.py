@@ -51,3 +51,14 @@ def prioritise_threads(
         changed += 1
     logger.info("%d helper threads at SCHED_FIFO below the cyclic thread", changed)
     return changed
+
+
+def restore_main_thread() -> None:
+    """Put the main thread back on the normal scheduler (after :func:`prioritise_threads`)."""
+    native_id = threading.main_thread().native_id
+    if native_id is None:
+        return
+    try:
+        os.sched_setscheduler(native_id, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError) as exc:
+        logger.warning("main thread keeps its scheduler: %s", exc)
