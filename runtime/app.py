@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path as FilePath
 from typing import TextIO
 
 import canopen
@@ -28,11 +28,14 @@ from drives.bus import open_bus
 from drives.errors import DriveError
 from drives.master import AxisSpec, Cia402Master, MasterSettings
 from drives.scaling import AxisScaling
+from planner.braking import BrakingProfile
 from planner.errors import PlannerError
+from planner.nurbs import NurbsCurve
+from planner.stream import Path, stream_setpoints
 from runtime.commands import Command, CommandCode, CommandResult
 from runtime.config import MachineConfig
 from runtime.controller import Controller
-from runtime.curves import load_curve_file
+from runtime.curves import limits_for_curve, load_curve_file, planner_limits
 from runtime.errors import RuntimeFault
 from runtime.priorities import prioritise_threads, restore_main_thread
 from runtime.scheduler import CyclicTask
@@ -40,7 +43,7 @@ from runtime.status import MachineState, StatusSnapshot
 
 logger = logging.getLogger(__name__)
 
-DEMO_CURVE = Path("configs/curves/paper.yaml")
+DEMO_CURVE = FilePath("configs/curves/paper.yaml")
 #: SYNC-loss limit of in-process simulated drives, in periods. Real drives use 1.5 to 2; drives
 #: simulated in this process share its interpreter lock with the planner worker, so their SYNC
 #: callbacks can lag several periods behind a SYNC that went out on time.
@@ -148,6 +151,34 @@ class RunningMachine:
             self._stack.close()
 
 
+def warm_up_motion(controller: Controller) -> None:
+    """Plan, brake and interpolate a short line once, before the cycle starts.
+
+    The first use of each planner code path imports modules and warms numpy's caches, tens of
+    milliseconds under the interpreter lock: done here, no cycle waits for it at the first start.
+    """
+    limits = planner_limits(controller.config)
+    dimension = min(3, len(controller.config.axes))
+    line = NurbsCurve.from_arrays(1, [[0.0] * dimension, [1.0] * dimension], [0, 0, 1, 1])
+    path = Path(line, limits_for_curve(limits, dimension), controller.config.cycle.period_s)
+    feed = controller.feed
+    for _ in stream_setpoints(
+        path,
+        limits_for_curve(limits, dimension),
+        feed.period_s,
+        lookahead=feed.lookahead,
+        update=feed.update,
+    ):
+        pass
+    BrakingProfile.from_state(
+        v0_mm_s=limits.vmax_mm_s,
+        a0_mm_s2=0.0,
+        amax_mm_s2=limits.amax_mm_s2,
+        jmax_mm_s3=limits.jmax_mm_s3,
+    ).sample(0.0)
+    path.curve.point(float(path.arc.u_of_s(0.5)[0]))
+
+
 @contextmanager
 def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[RunningMachine]:
     """Start the whole machine; yields it running and shuts it down on exit.
@@ -206,6 +237,7 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
         # interpreter lock keeps the cyclic thread waiting (it only waits and reports).
         if prioritise_threads(config.cycle.realtime.priority, include_main=True):
             stack.callback(restore_main_thread)
+        warm_up_motion(controller)
         if config.cycle.realtime.gc != "normal":
             # Everything alive after start-up goes to the permanent generation: no later full
             # collection (in whichever thread allocates, the cyclic one included) scans it.
@@ -224,7 +256,7 @@ def run_machine(
     config: MachineConfig,
     *,
     demo: bool = False,
-    curve_path: Path | None = None,
+    curve_path: FilePath | None = None,
     out: TextIO | None = None,
 ) -> int:
     """The body of ``softmotion run``; returns the exit status."""
