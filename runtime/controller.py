@@ -35,6 +35,8 @@ logger = logging.getLogger(__name__)
 
 #: Commands applied per cycle at most; the rest wait for the next cycle (bounded work).
 COMMANDS_PER_CYCLE = 8
+#: Attempts to configure lost or restarted drives again during a reset.
+RECOVERY_ATTEMPTS = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -153,13 +155,18 @@ class Controller:
         self._recovery.start()
 
     def _recover(self) -> None:
-        try:
-            names = self.drives.recover()
-        except DriveError as exc:
-            logger.error("reset: drives not recovered: %s", exc)
-        else:
-            logger.info("reset: drives %s configured again", ", ".join(names))
-            self._recovered.set()
+        # A drive that just rebooted may miss an SDO deadline on a busy bus: try again, from its
+        # communication reset, before giving up (the operator can reset once more).
+        for attempt in range(1, RECOVERY_ATTEMPTS + 1):
+            try:
+                names = self.drives.recover()
+            except DriveError as exc:
+                logger.warning("reset: attempt %d: drives not recovered: %s", attempt, exc)
+            else:
+                logger.info("reset: drives %s configured again", ", ".join(names))
+                self._recovered.set()
+                return
+        logger.error("reset: drives not recovered after %d attempts", RECOVERY_ATTEMPTS)
 
     def on_overrun_limit(self, consecutive: int) -> None:
         """Called by the cyclic task when too many consecutive periods were missed.
