@@ -157,14 +157,14 @@ def warm_up_motion(controller: Controller) -> None:
     The first use of each planner code path imports modules and warms numpy's caches, tens of
     milliseconds under the interpreter lock: done here, no cycle waits for it at the first start.
     """
-    limits = planner_limits(controller.config)
     dimension = min(3, len(controller.config.axes))
+    limits = limits_for_curve(planner_limits(controller.config), dimension)
     line = NurbsCurve.from_arrays(1, [[0.0] * dimension, [1.0] * dimension], [0, 0, 1, 1])
-    path = Path(line, limits_for_curve(limits, dimension), controller.config.cycle.period_s)
     feed = controller.feed
+    path = Path(line, limits, feed.period_s)
     for _ in stream_setpoints(
         path,
-        limits_for_curve(limits, dimension),
+        limits,
         feed.period_s,
         lookahead=feed.lookahead,
         update=feed.update,

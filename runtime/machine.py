@@ -212,7 +212,7 @@ class Machine:
         logger.error("fault: %s", text)
         self._recovery = None
         self._continue = False
-        if self.state in (MachineState.DISABLED,):
+        if self.state is MachineState.DISABLED:
             self.feed.rest_at(self._actual)
         elif self.config.machine.fault_reaction == "quick_stop" or self.feed.current.path is None:
             self._quick_stop()
@@ -225,8 +225,10 @@ class Machine:
     def step(self, feedback: Sequence[AxisFeedbackLike], now_s: float) -> tuple[float, ...]:
         """One cycle: supervise the drives, advance the motion; returns each axis's target."""
         self._actual = tuple(fb.position_mm for fb in feedback)
+        # While a reset is in progress, the old faults are expected until the drives clear them.
+        resetting = self._recovery is not None and self.state is MachineState.ERROR_STOP
         for fb in feedback:
-            if fb.fault is not None and self._counts_as_fault(fb):
+            if fb.fault is not None and not resetting:
                 self._refine_fault(fb)
                 self.raise_fault(
                     _FAULT_KINDS[fb.fault.kind],
@@ -257,10 +259,6 @@ class Machine:
                 _FAULT_KINDS[fb.fault.kind], str(fb.fault), fb.axis, fb.fault.emcy_code or 0
             )
             self.message = f"error stop: {self.fault.text}"
-
-    def _counts_as_fault(self, fb: AxisFeedbackLike) -> bool:
-        # While a reset is in progress, the old fault is expected until the drive clears it.
-        return not (self._recovery is not None and self.state is MachineState.ERROR_STOP)
 
     def _begin_recovery(self, target: MachineState, message: str) -> None:
         self._recovery = target
