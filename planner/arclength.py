@@ -14,11 +14,12 @@ s at the table points. All of it is vectorised over intervals, one numpy pass pe
 level.
 
 Between table points, s(u) = s(u_i) + Gauss-Legendre quadrature of |C'| over [u_i, u]; u(s)
-starts from linear interpolation on the table (or from a caller's guess inside the bracketing
-table interval) and takes Newton steps with ds/du = |C'(u)|, falling back to bisection of the
-bracket where a step would leave it (for example where C'(u) = 0 at a sharp corner). A step
-whose predicted error (d2s/du2)/2 du^2 is far below the tolerance is accepted without another
-evaluation, so a good guess costs two curve evaluations.
+starts from quintic Hermite interpolation of u, du/ds and d2u/ds2 at the table points (or from
+a caller's guess inside the bracketing table interval) and takes Newton steps with
+ds/du = |C'(u)|, falling back to bisection of the bracket where a step would leave it (for
+example where C'(u) = 0 at a sharp corner). A step whose predicted error (d2s/du2)/2 du^2 is far
+below the tolerance is accepted without another evaluation, so the usual cost of u(s) is one
+quadrature and one evaluation of C', C'' at the answer.
 
 Units: s and lengths in mm, u dimensionless.
 Accuracy: about 1e-9 relative to the curve length or better for s(u); u(s) meets
@@ -79,6 +80,7 @@ class ArcLengthTable:
         self.curve = curve
         self._u_grid, self._s_grid = _build_table(curve, int(samples_per_span))
         self.length_mm = float(self._s_grid[-1])
+        self._du_ds, self._d2u_ds2 = _inverse_slopes(curve, self._u_grid)
 
     @property
     def u_grid(self) -> np.ndarray:
@@ -109,7 +111,7 @@ class ArcLengthTable:
         :param s: arc length or array of arc lengths (flattened) in mm, within [0, length_mm].
         :param u_guess: optional starting parameters (same number as ``s``), e.g. a Taylor
             prediction; a guess outside the table interval that holds the answer is replaced by
-            linear interpolation on the table.
+            the table's own (quintic Hermite interpolation).
         :returns: 1-D array of u with |s_of_u(u) - s| <= 1e-10 mm (or u located to a few ulp).
         :raises CurveError: for an arc length outside [0, length_mm] or not finite, or a guess
             of the wrong size.
@@ -117,10 +119,8 @@ class ArcLengthTable:
         target = _checked(s, "s", 0.0, self.length_mm)
         i = np.minimum(np.searchsorted(self._s_grid, target, side="right") - 1, self._last)
         lo, hi = self._u_grid[i].copy(), self._u_grid[i + 1].copy()
-        s_lo, s_hi = self._s_grid[i], self._s_grid[i + 1]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = lo + (hi - lo) * np.minimum((target - s_lo) / (s_hi - s_lo), 1.0)
-        u = np.where(np.isfinite(u), u, lo)
+        s_lo = self._s_grid[i]
+        u = self._hermite_guess(i, target)
         if u_guess is not None:
             guess = np.asarray(u_guess, dtype=np.float64).ravel()
             if guess.shape != target.shape:
@@ -134,6 +134,32 @@ class ArcLengthTable:
         u[target == self.length_mm] = self._u_grid[-1]
         self._newton(u, lo, hi, s_lo, target, i)
         return u
+
+    def _hermite_guess(self, i: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """u(s) on table interval i by quintic Hermite interpolation of u, du/ds and d2u/ds2.
+
+        Accurate enough that one Newton step usually settles; where the slopes are not finite
+        (C' = 0 at a node) or the result leaves the interval, linear interpolation instead.
+        """
+        u0, u1 = self._u_grid[i], self._u_grid[i + 1]
+        s0, s1 = self._s_grid[i], self._s_grid[i + 1]
+        h = s1 - s0
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            t = np.clip((target - s0) / h, 0.0, 1.0)
+            t2 = t * t
+            t3 = t2 * t
+            right = t3 * (10.0 - 15.0 * t + 6.0 * t2)
+            u = (
+                u0
+                + (u1 - u0) * right
+                + h * self._du_ds[i] * (t - t3 * (6.0 - 8.0 * t + 3.0 * t2))
+                - h * self._du_ds[i + 1] * t3 * (4.0 - 7.0 * t + 3.0 * t2)
+                + h * h * self._d2u_ds2[i] * 0.5 * t2 * (1.0 - t) ** 3
+                + h * h * self._d2u_ds2[i + 1] * 0.5 * t3 * (1.0 - t) ** 2
+            )
+            linear = u0 + (u1 - u0) * t
+        good = np.isfinite(u) & (u >= u0) & (u <= u1)
+        return np.where(good, u, np.where(np.isfinite(linear), linear, u0))
 
     @property
     def _last(self) -> int:
@@ -210,19 +236,21 @@ def _gauss(curve: NurbsCurve, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _integral_and_slope(
     curve: NurbsCurve, a: np.ndarray, b: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Integral of |C'| over each [a, b], ds/du = |C'(b)| and d2s/du2 = C'.C''/|C'| at b.
-
-    One curve evaluation for all of it: per call overhead dominates for a few parameters.
-    """
-    half = 0.5 * (b - a)
-    nodes = (a + half)[:, None] + half[:, None] * _NODES
-    _, d1, d2 = curve.evaluate(np.concatenate([nodes.ravel(), b]), order=2)
-    speed = np.linalg.norm(d1, axis=1)
-    integral = half * (speed[: nodes.size].reshape(nodes.shape) @ _WEIGHTS)
-    ds_du = speed[nodes.size :]
+    """Integral of |C'| over each [a, b], ds/du = |C'(b)| and d2s/du2 = C'.C''/|C'| at b."""
+    integral = _gauss(curve, a, b)
+    _, d1, d2 = curve.evaluate(b, order=2)
+    ds_du = np.linalg.norm(d1, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        d2s_du2 = np.einsum("ij,ij->i", d1[nodes.size :], d2[nodes.size :]) / ds_du
+        d2s_du2 = np.einsum("ij,ij->i", d1, d2) / ds_du
     return integral, ds_du, d2s_du2
+
+
+def _inverse_slopes(curve: NurbsCurve, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """du/ds = 1/|C'| and d2u/ds2 = -(C'.C'')/|C'|^4 at u (inf or nan where C' = 0)."""
+    _, d1, d2 = curve.evaluate(u, order=2)
+    speed2 = np.sum(d1 * d1, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return 1.0 / np.sqrt(speed2), -np.sum(d1 * d2, axis=1) / (speed2 * speed2)
 
 
 def _build_table(curve: NurbsCurve, parts: int) -> tuple[np.ndarray, np.ndarray]:

@@ -6,10 +6,11 @@ its standard second-order Taylor form (the print is garbled):
 with V·T taken as the planned step s(i+1) - s(i) (the profile's exact step, not V(i)·T).
 - ``taylor2``: eq. (2) alone, step after step (the paper's interpolator; its step length drifts
   from the plan, most where the radius of curvature is small against the step).
-- ``corrected`` (default, beyond the paper, motion-planning.md §2): eq. (2) applied from the
-  arc-length table node below each target s gives the predictor, then Newton steps on
-  s(u) - s_target with ds/du = |C'(u)| (:meth:`ArcLengthTable.u_of_s`) make the arc length of
-  every setpoint equal the plan to 1e-10 mm, so the realised feed is the planned one.
+- ``corrected`` (default, beyond the paper, motion-planning.md §2): the arc-length table predicts
+  u (quintic Hermite interpolation of u(s) with its first two derivatives, the same second-order
+  information as eq. (2)), then Newton steps on s(u) - s_target with ds/du = |C'(u)|
+  (:meth:`ArcLengthTable.u_of_s`) make the arc length of every setpoint equal the plan to
+  1e-10 mm, so the realised feed is the planned one.
 
 Realised feed: the arc length between consecutive setpoints over T. The chord between them is
 shorter by about (kappa L)²/24 relative (L the step), which is geometry, not interpolation error.
@@ -81,13 +82,7 @@ class Interpolator:
         return u
 
     def _corrected(self, s_mm: np.ndarray) -> np.ndarray:
-        arc = self._arc
-        node = np.clip(np.searchsorted(arc.s_grid, s_mm, side="right") - 1, 0, len(arc.s_grid) - 2)
-        u_node = arc.u_grid[node]
-        ders = self._curve.evaluate(u_node, order=2)
-        guess = u_node + taylor2_step(ders[1], ders[2], s_mm - arc.s_grid[node])
-        guess = np.where(np.isfinite(guess), guess, u_node)
-        return arc.u_of_s(s_mm, u_guess=np.clip(guess, self._u0, self._u1))
+        return self._arc.u_of_s(s_mm)
 
     def _taylor2(self, s_mm: np.ndarray) -> np.ndarray:
         out = np.empty(len(s_mm))

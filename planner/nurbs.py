@@ -64,6 +64,7 @@ class NurbsCurve:
     weights: np.ndarray = field(repr=False)
     knots: np.ndarray = field(repr=False)
     _homogeneous: np.ndarray = field(init=False, repr=False)
+    _rational: bool = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         degree = _validated_degree(self.degree)
@@ -71,8 +72,13 @@ class NurbsCurve:
         weights = _validated_weights(self.weights, len(points))
         knots = _validated_knots(self.knots, degree, len(points))
         _check_nonzero_length(points)
-        homogeneous = np.hstack([points * weights[:, None], weights[:, None]])
+        # Equal weights cancel: the curve is a B-spline and needs no division by w(u).
+        rational = bool((weights != weights[0]).any())
+        homogeneous = (
+            np.hstack([points * weights[:, None], weights[:, None]]) if rational else points
+        )
         for name, value in (
+            ("_rational", rational),
             ("degree", degree),
             ("control_points", points),
             ("weights", weights),
@@ -216,14 +222,17 @@ class NurbsCurve:
         rows = self._homogeneous[span + np.arange(-p, 1)[:, None]]
         # Derivatives of the homogeneous curve: A^(k) in the first columns, w^(k) in the last.
         homogeneous = np.einsum("kim,imc->kmc", basis, rows)
-        a_ders = homogeneous[..., :-1]
-        w_ders = homogeneous[..., -1:]
-        ders = np.empty_like(a_ders)
-        for k in range(order + 1):  # The NURBS Book A4.2
-            value = a_ders[k].copy()
-            for i in range(1, k + 1):
-                value -= math.comb(k, i) * w_ders[i] * ders[k - i]
-            ders[k] = value / w_ders[0]
+        if self._rational:
+            a_ders = homogeneous[..., :-1]
+            w_ders = homogeneous[..., -1:]
+            ders = np.empty_like(a_ders)
+            for k in range(order + 1):  # The NURBS Book A4.2
+                value = a_ders[k].copy()
+                for i in range(1, k + 1):
+                    value -= math.comb(k, i) * w_ders[i] * ders[k - i]
+                ders[k] = value / w_ders[0]
+        else:
+            ders = homogeneous
         # The ends are interpolated exactly; floating point would otherwise leave ~1 ulp.
         ders[0][params == self.knots[0]] = self.control_points[0]
         ders[0][params == self.knots[-1]] = self.control_points[-1]

@@ -39,6 +39,8 @@ from planner.types import Limits, MotionState, SetpointBlock
 
 #: Relative tolerance when deciding that a time falls on a period boundary.
 _TIME_EPS = 1e-9
+#: Largest batch of rows whose parameters and positions are computed together.
+BATCH_ROWS = 1024
 
 
 class Path:
@@ -212,21 +214,28 @@ def _adaptive_rows(
 def _blocks(
     path: Path, interp: Interpolator, rows: Iterator[tuple[_Rows, bool]], block_periods: int
 ) -> Iterator[SetpointBlock]:
-    """Group rows into blocks, adding u and positions; the final block has last=True."""
+    """Group rows into blocks, adding u and positions; the final block has last=True.
+
+    Parameters and positions are computed for batches of rows that double from one block up to
+    ``BATCH_ROWS``: the first block comes as soon as it is planned, and later ones share the
+    fixed cost of the vectorised curve evaluations.
+    """
     pending: list[_Rows] = []
     count = 0
-    for batch, done in rows:
-        pending.append(batch)
-        count += len(batch[0])
-        while count > block_periods or (done and count > 0):
+    batch = block_periods
+    for rows_in, done in rows:
+        pending.append(rows_in)
+        count += len(rows_in[0])
+        while count > batch or (done and count > 0):
             cols = [np.concatenate([p[i] for p in pending]) for i in range(5)]
-            n = min(block_periods, count)
-            head = [c[:n] for c in cols]
+            n = min(batch, count)
             rest = [c[n:] for c in cols]
-            last = done and n == count
-            yield _block(path, interp, head, last)
+            big = _block(path, interp, [c[:n] for c in cols], last=done and n == count)
+            for start in range(0, n, block_periods):
+                yield big.rows(start, start + block_periods)
             pending = [tuple(rest)] if n < count else []  # type: ignore[list-item]
             count -= n
+            batch = min(2 * batch, max(block_periods, BATCH_ROWS))
 
 
 def _block(path: Path, interp: Interpolator, cols: list[np.ndarray], last: bool) -> SetpointBlock:

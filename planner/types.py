@@ -87,6 +87,10 @@ class MotionState:
     a_mm_s2: float = 0.0
 
 
+#: The per-row columns of a SetpointBlock.
+_COLUMNS = ("t_s", "s_mm", "u", "position_mm", "feed_mm_s", "accel_mm_s2", "jerk_mm_s3")
+
+
 def _readonly(array: np.ndarray) -> np.ndarray:
     array = np.ascontiguousarray(array, dtype=np.float64)
     array.flags.writeable = False
@@ -117,7 +121,7 @@ class SetpointBlock:
     last: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("t_s", "s_mm", "u", "position_mm", "feed_mm_s", "accel_mm_s2", "jerk_mm_s3"):
+        for name in _COLUMNS:
             object.__setattr__(self, name, _readonly(getattr(self, name)))
 
     def __len__(self) -> int:
@@ -134,9 +138,13 @@ class SetpointBlock:
             a_mm_s2=float(self.accel_mm_s2[i]),
         )
 
+    def rows(self, start: int, stop: int) -> SetpointBlock:
+        """Rows ``start`` to ``stop`` (exclusive) as a block; ``last`` if it holds the final row."""
+        columns = {name: getattr(self, name)[start:stop] for name in _COLUMNS}
+        return SetpointBlock(**columns, last=self.last and stop >= len(self))
+
     @staticmethod
     def concatenate(blocks: list[SetpointBlock]) -> SetpointBlock:
         """One block holding the rows of ``blocks`` in order (``last`` from the final block)."""
-        names = ("t_s", "s_mm", "u", "position_mm", "feed_mm_s", "accel_mm_s2", "jerk_mm_s3")
-        columns = {name: np.concatenate([getattr(b, name) for b in blocks]) for name in names}
+        columns = {name: np.concatenate([getattr(b, name) for b in blocks]) for name in _COLUMNS}
         return SetpointBlock(**columns, last=blocks[-1].last)

@@ -25,8 +25,10 @@ import math
 
 from planner.profiles import Phase
 
-#: Bisection steps for the cruise speed of a segment (2^-60 of the speed bracket).
-CRUISE_BISECTION_STEPS = 45
+#: Iterations of the bracketed Newton search for a speed whose ramps fit a distance.
+SPEED_SEARCH_STEPS = 100
+#: Relative distance tolerance at which such a speed is accepted.
+SPEED_SEARCH_RTOL = 1e-12
 
 
 def ramp_time_s(dv: float, A: float, J: float) -> float:
@@ -79,14 +81,8 @@ def min_ramp_speed(v_start: float, L: float, A: float, J: float) -> float:
     """
     if ramp_distance_mm(v_start, 0.0, A, J) <= L:
         return 0.0
-    lo, hi = 0.0, v_start  # ramp_distance(v_start, lo) > L >= ramp_distance(v_start, hi)
-    for _ in range(CRUISE_BISECTION_STEPS):
-        mid = 0.5 * (lo + hi)
-        if ramp_distance_mm(v_start, mid, A, J) > L:
-            lo = mid
-        else:
-            hi = mid
-    return hi
+    # ramp_distance(v_start, v_start) = 0 <= L < ramp_distance(v_start, 0)
+    return _fitting_speed((v_start,), L, v_start, 0.0, A, J)
 
 
 def segment_distance_mm(v0: float, vp: float, v1: float, A: float, J: float) -> float:
@@ -102,26 +98,79 @@ def cruise_speed(v0: float, v1: float, L: float, v_cap: float, A: float, J: floa
     the lower speed and changes speed next to the faster end (the shape that stays under a feed
     limit rising towards that end); a start faster than v_cap (a lowered feed override) first
     brakes down to it. The distance is monotonic in vp on each side of the bracket, so a
-    bisection finds vp; the caller must have ensured ramp_distance(v0, v1) <= L.
+    bracketing search finds vp; the caller must have ensured ramp_distance(v0, v1) <= L.
     """
     top, bottom = max(v0, v1), min(v0, v1)
-    if v_cap >= top:
-        if segment_distance_mm(v0, v_cap, v1, A, J) <= L:
-            return v_cap
-        feasible, infeasible = top, v_cap
-    else:
-        if segment_distance_mm(v0, v_cap, v1, A, J) <= L:
-            return v_cap
-        feasible, infeasible = (top if v_cap > top else bottom), v_cap
+    if segment_distance_mm(v0, v_cap, v1, A, J) <= L:
+        return v_cap
+    feasible = top if v_cap >= top else bottom
     if segment_distance_mm(v0, feasible, v1, A, J) > L:
         return feasible
-    for _ in range(CRUISE_BISECTION_STEPS):
-        mid = 0.5 * (feasible + infeasible)
-        if segment_distance_mm(v0, mid, v1, A, J) <= L:
-            feasible = mid
+    return _fitting_speed((v0, v1), L, feasible, v_cap, A, J)
+
+
+def _fitting_speed(
+    ends: tuple[float, ...], L: float, feasible: float, infeasible: float, A: float, J: float
+) -> float:
+    """The speed x between ``feasible`` and ``infeasible`` where the ramps from each speed in
+    ``ends`` to x cover exactly L together, returned on the feasible side (total distance in
+    [L - 1e-12 L, L]); the total must be <= L at ``feasible``, > L at ``infeasible`` and
+    monotonic between.
+
+    Newton steps in y = sqrt(|x - feasible|), kept inside the bracket (bisection otherwise): a
+    ramp's distance grows like sqrt(dv) next to the feasible end, a vertical slope in x, but is
+    smooth in y. Started at y = 0, the iterates converge monotonically after the first step
+    (from above where the distance is convex in y, from below where it is concave).
+    """
+    sign = 1.0 if infeasible > feasible else -1.0
+    low, high = 0.0, math.sqrt(abs(infeasible - feasible))
+    best, y, previous = feasible, 0.0, math.nan
+    for _ in range(SPEED_SEARCH_STEPS):
+        x = feasible + sign * y * y
+        excess = sum(ramp_distance_mm(v, x, A, J) for v in ends) - L
+        if excess <= 0.0:
+            low, best = y, x
+            if excess >= -SPEED_SEARCH_RTOL * L:
+                break
+        elif excess <= SPEED_SEARCH_RTOL * L or x == previous:
+            # On the root to within round-off of L or of x: step back towards the feasible end
+            # by doubling ulps until the distance holds.
+            back = math.ulp(x)
+            while abs(back) < abs(x - feasible):
+                if sum(ramp_distance_mm(v, x - sign * back, A, J) for v in ends) <= L:
+                    return x - sign * back
+                back *= 2.0
+            return best
         else:
-            infeasible = mid
-    return feasible
+            high = y
+        if (high * high - low * low) <= 4.0 * math.ulp(x):  # x cannot be resolved further
+            break
+        slope = sum(_ramp_growth(v, x, y, sign, A, J) for v in ends)
+        # Aim half a tolerance short of L: iterates coming from the infeasible side then cross
+        # into the accepted band instead of creeping towards L from above.
+        aim = excess + 0.5 * SPEED_SEARCH_RTOL * L
+        step = y - aim / slope if slope > 0.0 and math.isfinite(slope) else math.nan
+        y = step if low < step < high else 0.5 * (low + high)
+        previous = x
+    return best
+
+
+def _ramp_growth(v_fixed: float, x: float, y: float, sign: float, A: float, J: float) -> float:
+    """d/dy of ramp_distance_mm(v_fixed, x) for x = feasible + sign y² (see _fitting_speed).
+
+    d = (v_fixed + x)/2 t(dv) with dv = |x - v_fixed|, so
+    dd/dy = sign y t + (v_fixed + x) y t'(dv) sign sign(x - v_fixed), where y t'(dv) is y/A at
+    constant acceleration and y / sqrt(J dv) otherwise (1/sqrt(J) where dv = y² -> 0).
+    """
+    dv = abs(x - v_fixed)
+    if dv >= A * A / J:
+        y_dt = y / A
+    elif dv > 0.0:
+        y_dt = y / math.sqrt(J * dv)
+    else:
+        y_dt = 1.0 / math.sqrt(J) if y == 0.0 else math.inf
+    direction = 1.0 if x >= v_fixed else -1.0
+    return sign * y * ramp_time_s(dv, A, J) + (v_fixed + x) * y_dt * sign * direction
 
 
 def ramp_phases(v0: float, v1: float, A: float, J: float) -> list[Phase]:
