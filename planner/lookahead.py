@@ -63,6 +63,11 @@ from planner.profiles.scurve import (
 GRID_SPACING_MM = 0.2
 #: Grid samples per knot span, at least and at most.
 GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN = 8, 128
+#: Relative change of the feed limit across a grid interval above which it is halved, and the
+#: most halvings.
+TIGHT_CHANGE, TIGHT_LEVELS = 0.05, 8
+#: Every this many envelope samples, the arc length is computed exactly (the rest interpolates).
+ANCHOR_EVERY = 16
 #: Knot spans per envelope chunk, and chunks kept in the cache.
 CHUNK_SPANS, CACHE_CHUNKS = 256, 16
 #: Feed limits below this are treated as a stop, mm/s.
@@ -84,6 +89,8 @@ WINDOW_BRAKING_DISTANCES, MIN_WINDOW_MM = 16.0, 1.0
 MAX_REFINEMENTS, MAX_WINDOW_POINTS = 30, 300
 #: Relative slack of the feed-limit check.
 CHECK_SLACK = 1e-9
+#: Relative excess of a ramp over its distance still counted as fitting (round-off).
+RAMP_FIT_RTOL = 1e-9
 #: Points closer than this are not inserted, mm.
 MIN_POINT_GAP_MM = 1e-7
 
@@ -107,7 +114,8 @@ class FeedEnvelope:
         # Every breakpoint is a node of the arc-length table.
         nodes = np.searchsorted(arc.u_grid, self._breaks)
         self._s_breaks = np.array(arc.s_grid[np.minimum(nodes, len(arc.u_grid) - 1)])
-        self._step_cap_mm = MAX_OVERRIDE_RATIO * limits.vmax_mm_s * period_s
+        self._vcap_mm_s = MAX_OVERRIDE_RATIO * limits.vmax_mm_s
+        self._step_cap_mm = self._vcap_mm_s * period_s
         # The sampled curvature can miss a little of a very sharp peak: plan a shade inside delta.
         self._planning_limits = replace(
             limits, chord_error_mm=limits.chord_error_mm * (1.0 - CHORD_MARGIN)
@@ -195,12 +203,14 @@ class FeedEnvelope:
         cusps = self._cusps(u, d1)
         if cusps.size:
             samples = self._merged(samples, cusps, stop=True)
-        extra = np.concatenate([peaks, self._corner_grid(samples[0], samples[1])])
+        extra = np.concatenate(
+            [peaks, self._corner_grid(samples[0], samples[1]), self._tight_midpoints(u, v)]
+        )
         extra = extra[(extra > u[0]) & (extra < u[-1])]
         if extra.size:
             samples = self._merged(samples, extra, stop=False)
         u, v, d1, d2 = samples
-        s = self._arc_lengths(u, d1, d2, a, b)
+        s = self._arc_lengths(u, v, d1, d2)
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
         v = np.where(v < MIN_FEED_MM_S, 0.0, v)
@@ -220,10 +230,12 @@ class FeedEnvelope:
         self, samples: tuple[np.ndarray, ...], extra: np.ndarray, *, stop: bool
     ) -> tuple[np.ndarray, ...]:
         """Samples (u, v_limit, C', C'') with ``extra`` parameters added in order; with ``stop``
-        the new samples are stops (v_limit 0, as at a cusp)."""
+        the new samples are cusps: v_limit 0 and C' = 0 (located to round-off, where |C'| has
+        its kink)."""
         _, v_extra, d1_extra, d2_extra = self._limit(extra)
         if stop:
             v_extra = np.zeros(extra.size)
+            d1_extra = np.zeros_like(d1_extra)
         merged = [
             np.concatenate([old, new])
             for old, new in zip(samples, (extra, v_extra, d1_extra, d2_extra), strict=True)
@@ -253,33 +265,72 @@ class FeedEnvelope:
         reverses = dots[turn] < 0.0
         return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
 
-    def _arc_lengths(
-        self, u: np.ndarray, d1: np.ndarray, d2: np.ndarray, a: int, b: int
-    ) -> np.ndarray:
-        """Arc length at sorted samples u spanning breakpoints a..b, from derivatives in hand.
+    def _arc_lengths(self, u: np.ndarray, v: np.ndarray, d1: np.ndarray, d2: np.ndarray):
+        """Arc length at sorted samples u, mostly from the derivatives in hand.
 
-        Corrected trapezoid rule between neighbours (exact for cubic |C'|), with ds/du = |C'|
-        and d2s/du2 = C'.C''/|C'|, then scaled per knot span onto the table's exact arc length
-        at the breakpoints. The samples are 0.2 mm apart or closer, so this is accurate to
-        ~1e-9 of a span, and costs no further curve evaluation; the setpoints themselves take
-        their parameters from the arc-length table.
+        Exact (:meth:`ArcLengthTable.s_of_u`) at every ``ANCHOR_EVERY``-th sample and at every
+        stop (v_limit 0: corners, cusps), so that the plan stops exactly there; in between, a
+        corrected trapezoid rule (exact for cubic |C'|, with ds/du = |C'| and d2s/du2 =
+        C'.C''/|C'|) scaled onto the anchors. This costs a fraction of a curve evaluation per
+        sample; the setpoints themselves take their parameters from the arc-length table.
         """
         speed = np.linalg.norm(d1, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             slope = np.sum(d1 * d2, axis=1) / speed
-        slope = np.where(speed > 0.0, slope, 0.0)  # a cusp: |C'| has a kink, no derivative
+        # Where C' = 0 (a cusp) |C'| has a kink: |C''| leaving it, -|C''| arriving.
+        kink = np.linalg.norm(d2, axis=1)
+        leaving = np.where(speed > 0.0, slope, kink)
+        arriving = np.where(speed > 0.0, slope, -kink)
         h = np.diff(u)
-        pieces = 0.5 * h * (speed[:-1] + speed[1:]) + h * h / 12.0 * (slope[:-1] - slope[1:])
+        pieces = 0.5 * h * (speed[:-1] + speed[1:]) + h * h / 12.0 * (leaving[:-1] - arriving[1:])
         cumulative = np.concatenate([[0.0], np.cumsum(np.maximum(pieces, 0.0))])
-        nodes = np.searchsorted(u, self._breaks[a : b + 1])
-        start = np.repeat(np.arange(b - a), np.diff(nodes))
-        start = np.append(start, b - a - 1)
-        c0, c1 = cumulative[nodes[:-1]], cumulative[nodes[1:]]
+        n = len(u)
+        anchors = np.union1d(
+            np.append(np.arange(0, n, ANCHOR_EVERY), n - 1), np.flatnonzero(v == 0)
+        )
+        s_anchor = self._arc.s_of_u(u[anchors])
+        piece = np.minimum(
+            np.searchsorted(anchors, np.arange(n), side="right") - 1, len(anchors) - 2
+        )
+        piece = np.maximum(piece, 0)
+        c0, c1 = cumulative[anchors[:-1]], cumulative[anchors[1:]]
         with np.errstate(divide="ignore", invalid="ignore"):
-            scale = np.where(c1 > c0, np.diff(self._s_breaks[a : b + 1]) / (c1 - c0), 0.0)
-        s = self._s_breaks[a + start] + (cumulative - c0[start]) * scale[start]
-        s[-1] = self._s_breaks[b]
+            scale = np.where(c1 > c0, np.diff(s_anchor) / (c1 - c0), 0.0)
+        if len(anchors) < 2:
+            return s_anchor
+        s = s_anchor[piece] + (cumulative - c0[piece]) * scale[piece]
+        s[anchors] = s_anchor
         return np.maximum.accumulate(s)
+
+    def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Parameters added where the grid is coarse for the feed limit.
+
+        The limit is interpolated linearly between samples, which is only safe where it changes
+        little: an interval is halved, up to ``TIGHT_LEVELS`` times, while its limit changes by
+        more than ``TIGHT_CHANGE`` of the lower end, unless that is above any feed a plan of
+        this path may use. Stops (a zero limit) have a grid of their own.
+        """
+        lo, hi, v_lo, v_hi = u[:-1], u[1:], v[:-1], v[1:]
+        added = []
+        for _ in range(TIGHT_LEVELS):
+            low = np.minimum(v_lo, v_hi)
+            with np.errstate(invalid="ignore"):
+                coarse = (
+                    (low > 0.0)
+                    & (low < self._vcap_mm_s)
+                    & (np.abs(v_hi - v_lo) > TIGHT_CHANGE * low)
+                )
+            if not coarse.any():
+                break
+            mid = 0.5 * (lo[coarse] + hi[coarse])
+            _, v_mid, _, _ = self._limit(mid)
+            added.append(mid)
+            lo, hi = np.concatenate([lo[coarse], mid]), np.concatenate([mid, hi[coarse]])
+            v_lo, v_hi = (
+                np.concatenate([v_lo[coarse], v_mid]),
+                np.concatenate([v_mid, v_hi[coarse]]),
+            )
+        return np.concatenate(added) if added else np.empty(0)
 
     @staticmethod
     def _refined_maxima(u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
@@ -387,8 +438,12 @@ def _passes(s: list[float], cap: list[float], v_start: float, lim: PlanLimits) -
     for k in range(1, n):
         L = s[k] - s[k - 1]
         v[k] = min(back[k], max_ramp_speed(v[k - 1], L, lim.A, lim.J))
-        if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], lim.A, lim.J) > L:
+        if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], lim.A, lim.J) > L * (
+            1.0 + RAMP_FIT_RTOL
+        ):
             # Only a start state faster than the constraints allow gets here: brake hardest.
+            # (Not round-off: where the backward pass made the ramp fit L exactly, min_ramp_speed
+            # would answer the speed on the far side of its distance maximum, not 0.)
             v[k] = max(v[k], min_ramp_speed(v[k - 1], L, lim.A, lim.J))
     return v
 
@@ -467,8 +522,10 @@ def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> l
     """Refine the window until every segment keeps under the feed limit; returns the speeds.
 
     Each round checks every segment (last to first, so that splits do not shift the rest) and
-    repairs the failing ones; should the rounds run out, the failing segments are flattened to
-    the lowest limit they span, which always holds.
+    repairs the failing ones; should the rounds run out, every cosine segment becomes an S-curve
+    again (its jerk depends on both end speeds, which flattening may change) and the failing
+    segments are flattened to the lowest limit they span, which always holds: lowering the end
+    speeds of an S-curve segment never raises it anywhere.
     """
     verdicts: dict[tuple, tuple[float, float] | None] = {}
     v = _passes(w.s, w.cap, v_start, lim)
@@ -482,6 +539,8 @@ def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> l
         v = _passes(w.s, w.cap, v_start, lim)
         if not changed or len(w.s) > MAX_WINDOW_POINTS:
             break
+    w.cosine = [2 if kind == 1 else kind for kind in w.cosine]
+    v = _passes(w.s, w.cap, v_start, lim)
     for k, _ in _failing(w, v, checker, lim, verdicts):
         floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
         w.cosine[k] = 2
@@ -528,12 +587,13 @@ def _repair(
 ) -> bool:
     """One repair of segment k: cosine re-plan (F_v_plan), a new point, or a lower peak.
 
-    A new sensitive point goes to the worst excess with the lowest limit of the segment as its
-    cap (next to a stop, the lowest limit half-way to either end), so that it is below the limit
-    on both sides; refinement converges to a staircase under the limit where the limit keeps
-    changing. A segment that can no longer be split is held under its lowest limit by its peak.
+    A new sensitive point goes to the worst excess, capped by the feed limit there; the two
+    halves are checked again, so refinement converges to a staircase that touches the limit at
+    its points where the limit keeps changing (capping at the segment's lowest limit instead
+    would hold whole stretches below it). A segment that can no longer be split is held under
+    its lowest limit by its peak.
     """
-    s_bad, _ = bad
+    s_bad, v_limit_bad = bad
     L = w.s[k + 1] - w.s[k]
     if w.cosine[k] == 1:
         if not cosine_fits(v[k], v[k + 1], L, lim.A, lim.J):
@@ -549,15 +609,10 @@ def _repair(
         else:
             w.cosine[k] = 2
         return True
-    floor = checker.interior_min(w.s[k], w.s[k + 1])
     if s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
-        cap = floor
-        if (k > 0 and w.cap[k] == 0.0) or (k + 2 < len(w.s) and w.cap[k + 1] == 0.0):
-            # Next to a stop the lowest limit is ~0: take the lowest one around the point only.
-            reach = 0.5 * min(s_bad - w.s[k], w.s[k + 1] - s_bad)
-            cap = checker.interior_min(s_bad - reach, s_bad + reach)
-        w.insert(k, s_bad, min(cap, lim.vmax_mm_s))
+        w.insert(k, s_bad, min(v_limit_bad, lim.vmax_mm_s))
         return True
+    floor = checker.interior_min(w.s[k], w.s[k + 1])
     if max(v[k], v[k + 1]) <= floor * (1.0 + CHECK_SLACK):
         if w.peak_cap[k] > floor * (1.0 + 1e-12):
             w.peak_cap[k] = floor

@@ -37,20 +37,13 @@ def curves(draw) -> NurbsCurve:
     _, repeats = np.unique(knots[degree + 1 : n], return_counts=True)
     assume(repeats.max(initial=0) <= degree)
     assume(np.ptp(points, axis=0).max() > 0.5)
-    # Corners come from repeated points. A control polygon that turns back by more than 120° at a
-    # point (a cusp or a micro-loop inside a span) is outside these properties: there the planner
-    # was seen to exceed the chord error by up to 20 % and jmax by up to 6 % (a known limit).
-    legs = np.diff(points, axis=0)
-    legs = legs[np.linalg.norm(legs, axis=1) > 0.0]
-    unit = legs / np.linalg.norm(legs, axis=1)[:, None]
-    assume((np.sum(unit[:-1] * unit[1:], axis=1) > -0.5).all())
     return NurbsCurve.from_arrays(degree, points, np.sort(knots), weights)
 
 
-# derandomize: the same examples on every run, so that CI is reproducible; searching further is
-# done by hand (random seeds) and what it found is stated in the curve strategy above.
+# derandomize: the same examples on every run, so that CI is reproducible. Control polygons fold
+# back and loop freely, so cusps and loops far tighter than delta occur.
 @settings(
-    max_examples=25,
+    max_examples=60,
     deadline=None,
     derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
