@@ -541,14 +541,18 @@ def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> l
             break
     w.cosine = [2 if kind == 1 else kind for kind in w.cosine]
     v = _passes(w.s, w.cap, v_start, lim)
-    for k, _ in _failing(w, v, checker, lim, verdicts):
-        floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
-        w.cosine[k] = 2
-        w.peak_cap[k] = floor
-        for i in (k, k + 1):
-            if i > 0:
-                w.cap[i] = min(w.cap[i], floor)
-    return _passes(w.s, w.cap, v_start, lim)
+    for _ in range(MAX_REFINEMENTS):
+        failing = _failing(w, v, checker, lim, verdicts)
+        if not failing:
+            break
+        for k, _ in failing:
+            floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
+            w.peak_cap[k] = min(w.peak_cap[k], floor)
+            for i in (k, k + 1):
+                if i > 0:
+                    w.cap[i] = min(w.cap[i], floor)
+        v = _passes(w.s, w.cap, v_start, lim)
+    return v
 
 
 def _failing(
