@@ -476,23 +476,46 @@ class _Checker:
         inner = self.v_env[i0:i1]
         return float(min(ends.min(), inner.min())) if inner.size else float(ends.min())
 
-    def worst(
-        self, s0: float, v0: float, phases: list[Phase], v_top: float, s1: float
-    ) -> tuple[float, float] | None:
-        """(s, v_limit) of the worst excess of the feed limit, or None if the segment holds."""
-        if self.interior_min(s0, s1) >= v_top * (1.0 + CHECK_SLACK):
-            return None
-        train = PhaseTrain(0.0, s0, v0, 0.0)
-        train.extend(phases)
-        n = int(min(max(math.ceil(train.t_s / (0.5 * self.lim.T)), 16), 20_000))
-        t = np.linspace(0.0, train.t_s, n + 1)
-        s, v, _, _ = train.sample(t)
+    def worst_of(
+        self, segments: list[tuple[float, float, list[Phase], float, float]]
+    ) -> list[tuple[float, float] | None]:
+        """For each segment (s0, v0, phases, v_top, s1): (s, v_limit) of its worst excess of the
+        feed limit, or None if it holds.
+
+        Segments whose highest feed is below the lowest limit they span hold at once; the others
+        are laid on one time line (a second apart) and sampled together every half period.
+        """
+        out: list[tuple[float, float] | None] = [None] * len(segments)
+        pending = [
+            i
+            for i, (s0, _, _, v_top, s1) in enumerate(segments)
+            if self.interior_min(s0, s1) < v_top * (1.0 + CHECK_SLACK)
+        ]
+        if not pending:
+            return out
+        train = PhaseTrain(0.0, 0.0, 0.0, 0.0)
+        sampled, times = [], []
+        for i in pending:
+            s0, v0, phases, _, _ = segments[i]
+            start = train.t_s + 1.0
+            train.restart(start, s0, v0, 0.0)
+            train.extend(phases)
+            if train.t_s > start:  # a segment without motion has nothing to exceed
+                n = int(min(max(math.ceil((train.t_s - start) / (0.5 * self.lim.T)), 16), 20_000))
+                sampled.append(i)
+                times.append(np.linspace(start, train.t_s, n + 1))
+        if not sampled:
+            return out
+        counts = [len(x) for x in times]
+        s, v, _, _ = train.sample(np.concatenate(times))
         limit = np.interp(s, self.s_env, self.v_env)
         excess = v - limit * (1.0 + CHECK_SLACK) - 1e-9
-        i = int(np.argmax(excess))
-        if excess[i] <= 0.0:
-            return None
-        return float(s[i]), float(limit[i])
+        first = np.cumsum([0, *counts[:-1]])
+        for i, lo, n in zip(sampled, first, counts, strict=True):
+            j = lo + int(np.argmax(excess[lo : lo + n]))
+            if excess[j] > 0.0:
+                out[i] = (float(s[j]), float(limit[j]))
+        return out
 
 
 def _sensitive_points(
@@ -559,18 +582,21 @@ def _failing(
     w: _Window, v: list[float], checker: _Checker, lim: PlanLimits, verdicts: dict
 ) -> list[tuple[int, tuple[float, float]]]:
     """Failing segments, last first, with their worst excess (s, v_limit)."""
+    keys: dict[int, tuple] = {}
+    unchecked: dict[tuple, tuple[float, float, list[Phase], float, float]] = {}
+    for k in range(len(w.s) - 1):
+        keys[k] = key = (w.s[k], w.s[k + 1], v[k], v[k + 1], w.peak_cap[k], w.cosine[k])
+        if key not in verdicts and key not in unchecked:
+            phases, v_top = _segment(w, k, v, lim)
+            unchecked[key] = (w.s[k], v[k], phases, v_top, w.s[k + 1])
+    verdicts.update(zip(unchecked, checker.worst_of(list(unchecked.values())), strict=True))
     out = []
     for k in range(len(w.s) - 2, -1, -1):
         L = w.s[k + 1] - w.s[k]
         if w.cosine[k] == 1 and not cosine_fits(v[k], v[k + 1], L, lim.A, lim.J):
             out.append((k, (w.s[k], 0.0)))
-            continue
-        key = (w.s[k], w.s[k + 1], v[k], v[k + 1], w.peak_cap[k], w.cosine[k])
-        if key not in verdicts:
-            phases, v_top = _segment(w, k, v, lim)
-            verdicts[key] = checker.worst(w.s[k], v[k], phases, v_top, w.s[k + 1])
-        if verdicts[key] is not None:
-            out.append((k, verdicts[key]))
+        elif verdicts[keys[k]] is not None:
+            out.append((k, verdicts[keys[k]]))
     return out
 
 

@@ -59,9 +59,12 @@ class PhaseTrain:
                 self.a_mm_s2 = 0.0
             self.t_s = t + tau
 
-    def snap(self, s_mm: float, v_mm_s: float) -> None:
-        """Set the end state on a sensitive point (removes round-off of the closed forms)."""
-        self.s_mm, self.v_mm_s, self.a_mm_s2 = s_mm, v_mm_s, 0.0
+    def restart(self, t_s: float, s_mm: float, v_mm_s: float, a_mm_s2: float) -> None:
+        """Continue from a new state at a later time ``t_s`` (the phases after it start there);
+        lets unrelated motions share one vectorised sampling."""
+        if t_s < self.t_s:
+            raise ValueError(f"t_s: got {t_s!r}, must be >= the train's end {self.t_s!r}")
+        self.t_s, self.s_mm, self.v_mm_s, self.a_mm_s2 = t_s, s_mm, v_mm_s, a_mm_s2
 
     def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """s, v, a, j at times ``t`` (each within the train; later times hold the end state)."""
