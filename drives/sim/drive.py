@@ -23,8 +23,10 @@ Units: counts, counts/s, counts/s²; times per object (0x1006 µs, 0x1016/0x1017
 
 Threading: CAN callbacks run in the Network's notifier thread, the watchdog in its own thread,
 the test/fault-injection API in the caller's thread; one lock per drive serialises them. Work per
-SYNC is a few dictionary look-ups, struct packs and one frame per TPDO. Callbacks never raise
-into the notifier (errors are logged with ``logger.exception``).
+SYNC is a few dictionary look-ups, struct packs and one frame per TPDO; the bus delivers only
+the identifiers the drives subscribed to (a kernel filter on SocketCAN), so the other drives'
+PDOs cost nothing here. Callbacks never raise into the notifier (errors are logged with
+``logger.exception``).
 
 Not modelled: bus arbitration, bus load, error frames and bus-off, RTR, SDO block transfers
 beyond canopen's server, LSS, store/restore, SYNC counter and SYNC DLC check (0x8240), RPDO
@@ -668,6 +670,7 @@ class SimulatedDrive:
             if callback == self._on_sync:
                 self.network.unsubscribe(can_id, callback)
                 self._subscriptions.remove((can_id, callback))
+        self._filter_bus()
         if self._powered:
             cob_id = self._params[(objects.COB_ID_SYNC, 0)] & objects.COB_ID_MASK
             self._subscribe(self._subscriptions, cob_id, self._on_sync)
@@ -880,12 +883,33 @@ class SimulatedDrive:
     def _subscribe(self, registry: list, can_id: int, callback: Callable) -> None:
         self.network.subscribe(can_id, callback)
         registry.append((can_id, callback))
+        self._filter_bus()
 
     def _unsubscribe_all(self, registry: list) -> None:
         for can_id, callback in registry:
             if callback in self.network.subscribers.get(can_id, ()):
                 self.network.unsubscribe(can_id, callback)
         registry.clear()
+        self._filter_bus()
+
+    def _filter_bus(self) -> None:
+        """Let the bus deliver only the identifiers subscribed on this Network.
+
+        Every frame received costs the notifier thread a read and a dispatch, and most of the
+        bus (the other drives' RPDOs and TPDOs) concerns no drive here. On SocketCAN the kernel
+        drops them; other interfaces filter in python-can, still before canopen's dispatch.
+        """
+        bus = self.network.bus
+        if bus is not None:
+            # list() of a dict's keys runs in C under the GIL: another drive of the set may
+            # subscribe meanwhile from its own thread.
+            subscribed = list(self.network.subscribers)
+            bus.set_filters(
+                [
+                    {"can_id": can_id, "can_mask": objects.COB_ID_MASK, "extended": False}
+                    for can_id in subscribed
+                ]
+            )
 
     # ---------------------------------------------------------------- heartbeat consumer
 

@@ -474,6 +474,39 @@ def test_several_drives_share_one_network():
         master.disconnect()
 
 
+def _delivered_ids(bench: Bench) -> set[int]:
+    """The identifiers the drives' bus lets through (None: every frame)."""
+    filters = bench.drive_set.network.bus.filters
+    assert filters is not None, "the drives' bus receives every frame"
+    return {entry["can_id"] for entry in filters}
+
+
+def test_bus_delivers_only_what_the_drive_subscribed_to(bench):
+    # NMT, SYNC, SDO request, and the LSS response that canopen's Network subscribes itself.
+    booted = {0x000, 0x080, 0x600 + NODE, 0x7E4}
+    assert _delivered_ids(bench) == booted
+    bench.configure_pdos()
+    assert _delivered_ids(bench) == booted | {0x200 + NODE}  # RPDO1
+    bench.node.sdo[objects.CONSUMER_HEARTBEAT][1].raw = MASTER_NODE << 16 | 250
+    assert _delivered_ids(bench) == booted | {0x200 + NODE, 0x700 + MASTER_NODE}
+    bench.node.sdo[objects.COB_ID_SYNC].raw = 0x81
+    assert 0x081 in _delivered_ids(bench) and 0x080 not in _delivered_ids(bench)
+
+
+def test_frames_for_other_nodes_never_reach_the_drive(running):
+    """Another node's RPDO1 and TPDO1 on the bus: the drive neither receives nor acts on them."""
+    received: list[int] = []
+    running.drive_set.network.notifier.add_listener(
+        lambda message: received.append(message.arbitration_id)
+    )
+    other = NODE + 1
+    running.master.send_message(0x200 + other, bytes(6))
+    running.master.send_message(0x180 + other, bytes(6))
+    running.cycle(0x0F, running.drive.position_actual_counts)
+    assert 0x200 + NODE in received and 0x080 in received
+    assert not {0x200 + other, 0x180 + other} & set(received)
+
+
 def test_power_cycle_reboots(bench):
     bench.node.sdo[objects.FOLLOWING_ERROR_WINDOW].raw = 777
     bench.drive.stop()
