@@ -209,9 +209,14 @@ class HmiClient:
         return value
 
     def wait_for(
-        self, done: Callable[[HmiStatus], bool], timeout_s: float | None = None, what: str = ""
+        self,
+        done: Callable[[HmiStatus], bool],
+        timeout_s: float | None = None,
+        what: str = "",
+        *,
+        poll_s: float = POLL_S,
     ) -> HmiStatus:
-        """Poll the status until ``done(status)``; returns that status.
+        """Poll the status every ``poll_s`` seconds until ``done(status)``; returns that status.
 
         :raises HmiError: when ``timeout_s`` (default ``self.timeout_s``) passes first.
         """
@@ -225,7 +230,7 @@ class HmiClient:
                     f"modbus: timed out waiting for {what or 'the machine'} "
                     f"(state {status.snapshot.state!r}, message {status.snapshot.message!r})"
                 )
-            time.sleep(POLL_S)
+            time.sleep(poll_s)
 
     # -- commands -----------------------------------------------------------------------------
 

@@ -92,7 +92,7 @@ class TestDrivesVcan(DriveScenarios):
     TIMEOUT_SCALE = 10.0 if IN_VM else 1.0
     HEARTBEAT_MS = 1000 if IN_VM else 100
     PERIOD_S = 0.020 if IN_VM else 0.004
-    # The VM can deliver a drive's TPDO a few periods late on its one emulated CPU.
+    # The VM can deliver a drive's TPDO a few periods late on its emulated CPUs.
     STALE_FEEDBACK_CYCLES = 10 if IN_VM else 3
 
     def make_channel(self) -> str:

@@ -7,26 +7,36 @@ an injected drive fault, a drive process killed mid-motion, then restarted and r
 reset), because starting the processes is the slowest part inside the emulated VM.
 
 Timing inside the VM (``SOFTMOTION_VCAN_VM=1``): the CPU is emulated (no KVM), Python runs about
-15 times slower on one virtual CPU shared by four processes, and the guest's timer wake-ups are
-coarse. So there, and only there:
+15 times slower on two virtual CPUs shared by five processes (the runtime, three drives, and
+this test with its frame listener), and the guest's timer wake-ups are coarse. So there, and only
+there:
 
 - the cycle is 20 ms instead of 4 ms (5x), the curve is a quarter circle with a 10 µm chord
   error instead of the paper's curve (see ``CURVE``), run at 25 % feed override;
 - the drive and master heartbeats are 1000 ms instead of 100 ms (10x), the feedback may be 10
   cycles old, and boot and recovery timeouts are 60 s;
-- the following-error window is 5 mm instead of 1 mm (one period is 2 mm at full feed, and a
-  TPDO delivered after the next SYNC is compared with the next target);
+- the following-error window is 5 mm instead of 1 mm: a drive process that answers a SYNC only
+  after the next ones were sent is compared with a later target, 0.5 mm per period late at
+  25 % override. Measured on two virtual CPUs (``scripts/vcan-stage``) over five runs: 70 to
+  99 % of the TPDOs answered before the next SYNC, the latest 1 to 4 periods late (up to
+  1.9 mm, with both host cores also busy elsewhere); on one virtual CPU the five processes
+  need more than it has, the answers fell 11 periods behind and the check tripped at 5.4 mm;
 - the cycle may miss up to 100 consecutive periods (2 s) before it stops the machine, instead of
   3: the emulated VM was seen to stall the process for half a second; the drives' SYNC-loss
   limit is 100 periods instead of 10 for the same reason;
-- the runtime keeps the normal scheduler: a SCHED_FIFO process would starve the drive processes
-  on the VM's single CPU.
+- the runtime keeps the normal scheduler: a SCHED_FIFO process would starve the drive processes,
+  which on a real bus run on hardware of their own;
+- the test polls the machine's status every 100 ms instead of 10 ms: each read also costs the
+  runtime's Modbus thread CPU time that the cycle and the drives need.
+
+The curve's run reports how late the drives answered, in SYNCs, as seen on the bus.
 
 The frame checks are the same everywhere, and so are the SYNC checks that do not depend on the
-clock: one SYNC per executed cycle, and no burst (any ten SYNCs span at least nine periods). On
-a host the intervals are also bounded (median within 2 % of the period, none shorter than half
-a period); inside the VM they are only reported: a thread preempted between its deadline and
-its SYNC there shortens the next interval, so they measure the emulator's scheduler, not ours.
+clock: one SYNC per executed cycle, and no burst (any ten consecutive SYNC intervals span at
+least nine periods; eight in the VM, see ``BURST_SPAN_PERIODS``). On a host the intervals are
+also bounded (median within 2 % of the period, none shorter than half a period); inside the VM
+they are only reported: a thread preempted between its deadline and its SYNC there shortens the
+next interval, so they measure the emulator's scheduler, not ours.
 """
 
 from __future__ import annotations
@@ -68,20 +78,18 @@ PERIOD_MS = 20 if IN_VM else 4
 HEARTBEAT_MS = 1000 if IN_VM else 100
 TIMEOUT_SCALE = 10.0 if IN_VM else 1.0
 NODES = (1, 2, 3)
-# Measured in the emulated VM (one virtual CPU, Python ~15x slower): boot and SDO configuration
-# pass, but during motion the drive processes answer ten and more periods late even at a 20 ms
-# cycle and 25 % feed override, so the master's following-error check trips (5-7 mm). The motion
-# scenarios therefore run where vcan0 is native (a Linux host with the vcan module), not there.
-MOTION_IN_VM_REASON = (
-    "drive processes in the emulated VM answer 10+ periods late during motion "
-    "(following error 5-7 mm at 20 ms, 25 % override): run on a host with native vcan0"
-)
-motion = pytest.mark.skipif(IN_VM, reason=MOTION_IN_VM_REASON)
+#: Least span of ten consecutive SYNC intervals, in periods. A catch-up burst would shorten it by
+#: the periods caught up. In the VM the cyclic thread can be preempted for a whole period between
+#: its deadline and its SYNC, which shortens one span by that much without any burst (measured
+#: during motion: 179.7 ms for ten intervals at 20 ms, 8.99 periods).
+BURST_SPAN_PERIODS = 8 if IN_VM else 9
+#: Interval of the status polls while waiting: every read also costs the runtime's Modbus thread.
+STATUS_POLL_S = 0.1 if IN_VM else 0.01
 #: Feed override inside the VM: a drive process there can answer several periods late, and at
 #: full feed each period late is 2 mm of following error.
 VM_OVERRIDE_PERCENT = 25.0
 COUNTS_PER_MM = 1000
-SYNC, RPDO1 = 0x80, 0x200
+SYNC, RPDO1, TPDO1 = 0x80, 0x200, 0x180
 S = MachineState
 #: Controlwords a CSP axis legitimately sends (CiA 402: disable voltage, quick stop, shutdown,
 #: switch on / disable operation, enable operation, fault reset).
@@ -105,7 +113,7 @@ class VcanMachine:
         document["cycle"]["period_ms"] = PERIOD_MS
         document["cycle"]["overrun_limit"] = 100 if IN_VM else 3
         if IN_VM:
-            # One virtual CPU stands for the IPC and three drives: a SCHED_FIFO runtime would
+            # Two virtual CPUs stand for the IPC and three drives: a SCHED_FIFO runtime would
             # starve the drive processes, which on a real bus run on hardware of their own.
             document["cycle"]["realtime"].update(priority=0, spin_us=0)
         if IN_VM:
@@ -173,7 +181,9 @@ class VcanMachine:
         )
 
     def wait_for(self, condition, timeout_s: float, what: str):
-        return self.client.wait_for(condition, timeout_s * TIMEOUT_SCALE, what)
+        return self.client.wait_for(
+            condition, timeout_s * TIMEOUT_SCALE, what, poll_s=STATUS_POLL_S
+        )
 
     def close(self) -> None:
         self.client.close()
@@ -267,16 +277,51 @@ def check_sync_stream(
             f" p99 {np.percentile(intervals_ms, 99):.3f} ms, min {intervals_ms.min():.3f} ms,"
             f" max {intervals_ms.max():.3f} ms"
         )
-    # One SYNC per executed cycle, and never a catch-up burst: any ten SYNCs span at least
-    # nine periods.
+    # One SYNC per executed cycle, and never a catch-up burst: any ten consecutive intervals
+    # span at least BURST_SPAN_PERIODS periods.
     slack = 2 + math.ceil(reads_s / (PERIOD_MS / 1000))
     assert abs(len(syncs) - cycles_run) <= slack, (len(syncs), cycles_run, slack)
     spans_ms = (times_s[10:] - times_s[:-10]) * 1000
-    assert spans_ms.min() >= 9 * PERIOD_MS, "more than ten SYNCs in nine periods: a burst"
+    assert spans_ms.min() >= BURST_SPAN_PERIODS * PERIOD_MS, (
+        f"ten SYNC intervals in {spans_ms.min():.1f} ms, "
+        f"under {BURST_SPAN_PERIODS} periods: a burst"
+    )
     if not IN_VM:
         # Skipped periods stretch an interval by whole periods; the median ignores them.
         assert statistics.median(intervals_ms.tolist()) == pytest.approx(PERIOD_MS, rel=0.02)
         assert intervals_ms.min() >= PERIOD_MS / 2, "SYNCs closer than half a period: a burst"
+
+
+def report_answer_lateness(frames: list[RecordedFrame], capsys: pytest.CaptureFixture[str]) -> None:
+    """Print, per drive, how many SYNCs went out on the bus between the SYNC a TPDO1 answered
+    and that TPDO1 (0 = before the next SYNC).
+
+    A drive answers each SYNC once, in order, so its k-th TPDO1 answers the k-th SYNC after some
+    offset; the offset is taken from the earliest answer, which the machine at rest before the
+    start gives in time. A report, not a check: the following-error supervision is the check.
+    """
+    lines = []
+    for node in NODES:
+        syncs_before = []
+        count = 0
+        for frame in frames:
+            if frame.can_id == SYNC:
+                count += 1
+            elif frame.can_id == TPDO1 + node:
+                syncs_before.append(count)
+        if not syncs_before:
+            continue
+        behind = np.array(syncs_before) - np.arange(len(syncs_before))
+        late = behind - behind.min()
+        shares = ", ".join(
+            f"{periods}: {n}" for periods, n in enumerate(np.bincount(late).tolist()) if n
+        )
+        lines.append(
+            f"node {node}: {len(late)} TPDO1, mean {late.mean():.2f} SYNCs late, max"
+            f" {late.max()} (count per SYNCs late: {shares})"
+        )
+    with capsys.disabled():
+        print(f"\nTPDO1 answers on {VCAN_CHANNEL} during motion:\n  " + "\n  ".join(lines))
 
 
 def test_sync_and_rpdos_every_cycle_at_rest(
@@ -300,7 +345,6 @@ def test_sync_and_rpdos_every_cycle_at_rest(
     check_sync_stream(syncs, cycles_run, read_before_s + read_after_s, capsys, "at rest")
 
 
-@motion
 def test_curve_runs_to_the_end_with_exact_frames(
     machine: VcanMachine, listener: CanListener, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -340,9 +384,9 @@ def test_curve_runs_to_the_end_with_exact_frames(
         assert sorted(cycles[i : i + 3]) == [0x201, 0x202, 0x203] and cycles[i + 3] == SYNC
 
     check_sync_stream(syncs, cycles_run, read_before_s + read_after_s, capsys, "during motion")
+    report_answer_lateness(frames, capsys)
 
 
-@motion
 def test_injected_drive_fault_stops_every_axis(machine: VcanMachine, listener: CanListener) -> None:
     client = machine.client
     assert client.status().snapshot.state is S.STANDBY
@@ -366,7 +410,6 @@ def test_injected_drive_fault_stops_every_axis(machine: VcanMachine, listener: C
     run_paper_to_the_end(machine)
 
 
-@motion
 def test_killed_drive_is_detected_then_restarted_and_recovered(
     machine: VcanMachine, listener: CanListener
 ) -> None:
