@@ -147,7 +147,10 @@ class DriveScenarios:
     def _rig(self, channel: str, drive_ids: Sequence[int], **overrides: object) -> Iterator[Rig]:
         recorder = FrameRecorder(self.open_bus(channel))
         network = canopen.Network(self.open_bus(channel))
-        network.NOTIFIER_SHUTDOWN_TIMEOUT = 0.0
+        # Short notifier cycles, and a join on disconnect: a notifier still reading when its
+        # socketcan bus closes fails with EBADF (seen in the slow VM).
+        network.NOTIFIER_CYCLE = 0.05
+        network.NOTIFIER_SHUTDOWN_TIMEOUT = 0.5
         network.connect()
         master = Cia402Master(network, self.axes(), self.settings(**overrides))
         recorder.master = master
