@@ -418,6 +418,7 @@ class _Window:
         self.fv_plan = fv_plan  # per segment: region of frequent speed change (F_v_plan = 1)
         self.peak_cap = [math.inf] * (len(s) - 1)
         self.cosine = [0] * (len(s) - 1)  # 0: S-curve, 1: cosine, 2: cosine rejected
+        self.braking = False  # the first segment brakes from the start state (_brake_first)
 
     def insert(self, k: int, s_new: float, cap_new: float) -> None:
         """Split segment k at s_new with a new sensitive point."""
@@ -426,6 +427,13 @@ class _Window:
         self.fv_plan.insert(k + 1, self.fv_plan[k])
         self.peak_cap[k : k + 1] = [math.inf, math.inf]
         self.cosine[k : k + 1] = [0, 0]
+
+    def merge_first(self, m: int, peak_cap: float) -> None:
+        """Remove the points between the start and point m: one segment, held under peak_cap."""
+        del self.s[1:m], self.cap[1:m], self.fv_plan[1:m], self.peak_cap[1:m], self.cosine[1:m]
+        self.peak_cap[0] = peak_cap
+        self.cosine[0] = 2
+        self.braking = True
 
 
 def _passes(s: list[float], cap: list[float], v_start: float, lim: PlanLimits) -> list[float]:
@@ -553,6 +561,8 @@ def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> l
     verdicts: dict[tuple, tuple[float, float] | None] = {}
     v = _passes(w.s, w.cap, v_start, lim)
     for _ in range(MAX_REFINEMENTS):
+        if _brake_first(w, v, checker):
+            v = _passes(w.s, w.cap, v_start, lim)
         failing = _failing(w, v, checker, lim, verdicts)
         if not failing:
             return v
@@ -565,6 +575,8 @@ def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> l
     w.cosine = [2 if kind == 1 else kind for kind in w.cosine]
     v = _passes(w.s, w.cap, v_start, lim)
     for _ in range(MAX_REFINEMENTS):
+        if _brake_first(w, v, checker):
+            v = _passes(w.s, w.cap, v_start, lim)
         failing = _failing(w, v, checker, lim, verdicts)
         if not failing:
             break
@@ -576,6 +588,28 @@ def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> l
                     w.cap[i] = min(w.cap[i], floor)
         v = _passes(w.s, w.cap, v_start, lim)
     return v
+
+
+def _brake_first(w: _Window, v: list[float], checker: _Checker) -> bool:
+    """Merge the first segments into one that brakes at once, if the start is too fast for them.
+
+    Every sensitive point is a point of zero acceleration, so a staircase of them, refined where
+    the feed limit keeps falling, can brake only slowly. When the start state (released by the
+    previous window, which did not see this stretch) is faster than such a staircase allows,
+    the points up to the first one the plan meets again are removed, and the one segment left
+    brakes from the start down to the lowest limit it spans and holds it. Once per window.
+    """
+    if w.braking:
+        return False
+    over = [k for k in range(1, len(w.s)) if v[k] > w.cap[k] * (1.0 + 1e-9) + 1e-12]
+    if not over:
+        return False
+    m = over[-1] + 1
+    if m >= len(w.s):
+        return False
+    floor = max(checker.interior_min(w.s[0], w.s[m]), MIN_FEED_MM_S)
+    w.merge_first(m, floor)
+    return True
 
 
 def _failing(
@@ -639,7 +673,8 @@ def _repair(
         else:
             w.cosine[k] = 2
         return True
-    if s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
+    splittable = not (k == 0 and w.braking)
+    if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
         w.insert(k, s_bad, min(v_limit_bad, lim.vmax_mm_s))
         return True
     floor = checker.interior_min(w.s[k], w.s[k + 1])
