@@ -597,15 +597,14 @@ def _brake_first(w: _Window, v: list[float], checker: _Checker) -> bool:
     the feed limit keeps falling, can brake only slowly. When the start state (released by the
     previous window, which did not see this stretch) is faster than such a staircase allows,
     the points up to the first one the plan meets again are removed, and the one segment left
-    brakes from the start down to the lowest limit it spans and holds it. Once per window.
+    brakes from the start down to the lowest limit it spans and holds it (to the window's end
+    if the plan cannot even stop there).
     """
-    if w.braking:
-        return False
     over = [k for k in range(1, len(w.s)) if v[k] > w.cap[k] * (1.0 + 1e-9) + 1e-12]
     if not over:
         return False
-    m = over[-1] + 1
-    if m >= len(w.s):
+    m = min(over[-1] + 1, len(w.s) - 1)
+    if m <= 1:
         return False
     floor = max(checker.interior_min(w.s[0], w.s[m]), MIN_FEED_MM_S)
     w.merge_first(m, floor)
