@@ -60,7 +60,7 @@ from planner.profiles.scurve import (
 )
 
 #: Target spacing of the envelope grid along the path, mm.
-GRID_SPACING_MM = 0.2
+GRID_SPACING_MM = 0.4
 #: Grid samples per knot span, at least and at most.
 GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN = 8, 128
 #: Relative change of the feed limit across a grid interval above which it is halved, and the
