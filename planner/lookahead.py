@@ -50,6 +50,7 @@ from planner.profiles.cosine import cosine_fits, cosine_max_high_speed, cosine_t
 from planner.profiles.scurve import (
     braking_distance_mm,
     cruise_speed,
+    fitting_lower_speed,
     max_ramp_speed,
     min_ramp_speed,
     ramp_distance_mm,
@@ -446,13 +447,14 @@ def _passes(s: list[float], cap: list[float], v_start: float, lim: PlanLimits) -
     for k in range(1, n):
         L = s[k] - s[k - 1]
         v[k] = min(back[k], max_ramp_speed(v[k - 1], L, lim.A, lim.J))
-        if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], lim.A, lim.J) > L * (
-            1.0 + RAMP_FIT_RTOL
-        ):
-            # Only a start state faster than the constraints allow gets here: brake hardest.
-            # (Not round-off: where the backward pass made the ramp fit L exactly, min_ramp_speed
-            # would answer the speed on the far side of its distance maximum, not 0.)
-            v[k] = max(v[k], min_ramp_speed(v[k - 1], L, lim.A, lim.J))
+        fits = L * (1.0 + RAMP_FIT_RTOL)
+        if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], lim.A, lim.J) > fits:
+            if ramp_distance_mm(v[k - 1], 0.0, lim.A, lim.J) <= fits:
+                # Stopping fits where slowing to v[k] does not: slow down further instead.
+                v[k] = fitting_lower_speed(v[k - 1], v[k], L, lim.A, lim.J)
+            else:
+                # Only a start state faster than the constraints allow gets here: brake hardest.
+                v[k] = max(v[k], min_ramp_speed(v[k - 1], L, lim.A, lim.J))
     return v
 
 

@@ -85,6 +85,18 @@ def min_ramp_speed(v_start: float, L: float, A: float, J: float) -> float:
     return _fitting_speed((v_start,), L, v_start, 0.0, A, J)
 
 
+def fitting_lower_speed(v_start: float, v_end: float, L: float, A: float, J: float) -> float:
+    """Highest feed <= v_end that a ramp down from v_start reaches within distance L, when
+    stopping fits in L but slowing to v_end does not.
+
+    That happens: the distance of a ramp down from v_start is largest for an end feed between
+    0 and v_start (v_start/3, or A²/2J with constant deceleration), because ending higher keeps
+    the speed up for longer than the shorter ramp saves.
+    """
+    # ramp_distance(v_start, 0) <= L < ramp_distance(v_start, v_end), one crossing between.
+    return _fitting_speed((v_start,), L, 0.0, v_end, A, J)
+
+
 def segment_distance_mm(v0: float, vp: float, v1: float, A: float, J: float) -> float:
     """Distance of ramp(v0 -> vp) followed by ramp(vp -> v1), without cruise."""
     return ramp_distance_mm(v0, vp, A, J) + ramp_distance_mm(vp, v1, A, J)

@@ -148,6 +148,36 @@ def test_path_rejects_other_geometry_limits(path):
         list(stream_setpoints(path, LIMITS, T, update="euler"))
 
 
+def test_released_segments_cover_exactly_their_stretch():
+    # A degree-5 spatial curve with a repeated control point, where the plan must slow down
+    # steeply before a corner (found by random search: a ramp down that did not fit its stretch
+    # left a step in the planned arc length, jerk 4x jmax in the setpoints).
+    curve = NurbsCurve.from_arrays(
+        5,
+        [
+            [15.8168, -6.53224, 5.42824],
+            [22.2966, -1.68549, -15.514],
+            [-25.5564, -1.70463, -4.63498],
+            [-6.5836, 4.34968, -17.0582],
+            [10.6743, -23.1445, -17.6294],
+            [7.46402, -24.6005, -23.0534],
+            [7.46402, -24.6005, -23.0534],
+            [-6.31424, 22.4102, -28.1746],
+            [25.6513, -0.480689, 15.3561],
+        ],
+        [0, 0, 0, 0, 0, 0, 0.152705, 0.87821, 0.941897, 1, 1, 1, 1, 1, 1],
+        [1.66581, 2.09974, 2.48423, 1.29301, 2.26825, 0.779737, 1.2638, 0.790134, 2.76837],
+    )
+    limits = Limits(vmax_mm_s=20.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-4)
+    block = plan_setpoints(Path(curve, limits, T), limits, T)
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.max_chord_error_mm <= 1e-4 * 1.01
+    # The planned arc length advances by the planned feed: no step between segments.
+    mid_feed = 0.5 * (block.feed_mm_s[:-1] + block.feed_mm_s[1:])
+    assert np.abs(np.diff(block.s_mm) - mid_feed * T).max() < 0.02 * 20.0 * T
+
+
 def test_first_block_of_a_long_curve_is_fast():
     curve = long_curve(100_000)
     path = Path(curve, LIMITS, T)

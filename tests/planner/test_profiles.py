@@ -18,7 +18,10 @@ from planner.profiles.cosine import (
 from planner.profiles.scurve import (
     braking_distance_mm,
     cruise_speed,
+    fitting_lower_speed,
     max_ramp_speed,
+    min_ramp_speed,
+    ramp_distance_mm,
     ramp_phases,
     ramp_time_s,
     segment_distance_mm,
@@ -62,6 +65,22 @@ def test_segment_fills_its_length_and_meets_its_end_speeds(v0, v1, L):
     assert v.max() <= vp + 1e-9
     assert np.abs(a).max() <= A * (1 + 1e-12)
     assert np.abs(j).max() <= J
+
+
+@pytest.mark.parametrize("v_start", [12.77, 40.0, 90.0])
+def test_slowing_down_can_take_longer_than_stopping(v_start):
+    # The distance of a ramp down peaks at an intermediate end feed: between stopping and that
+    # peak there are end feeds that do not fit where a stop does.
+    peak = max(np.linspace(0.0, v_start, 401), key=lambda x: ramp_distance_mm(v_start, x, A, J))
+    stop_mm = braking_distance_mm(v_start, A, J)
+    assert 0.0 < peak < v_start and ramp_distance_mm(v_start, peak, A, J) > stop_mm
+    L = 0.5 * (stop_mm + ramp_distance_mm(v_start, peak, A, J))
+    x = fitting_lower_speed(v_start, peak, L, A, J)
+    assert 0.0 < x < peak
+    assert ramp_distance_mm(v_start, x, A, J) == pytest.approx(L, rel=1e-9)
+    assert ramp_distance_mm(v_start, x, A, J) <= L
+    # Only what is on the far side of the peak fits as the least braking, where a stop does not.
+    assert min_ramp_speed(v_start, 0.9 * stop_mm, A, J) > peak
 
 
 def test_cruise_speed_brakes_a_start_above_the_cap():
