@@ -23,7 +23,10 @@ inserted at the worst violation) until v(s) <= v_limit(s).
 Streaming with bounded memory: a window of the path is planned assuming a stop at its end, and
 only the part that a longer look-ahead could no longer change is released (its speeds equal
 those planned with no stop at the window end); the window then moves on. Only the window's
-points and the envelope chunks it touches are held.
+points and the envelope chunks it touches are held. A stop at the window end is not always the
+hardest case: a staircase of points refined beyond it can brake more slowly than one ramp, so
+a window whose start is too fast for its staircase merges it into one braking segment
+(:func:`_brake_first`).
 
 Units: s in mm, feeds mm/s, A mm/s², J mm/s³, T s. Pure computation; one generator per stream,
 not thread-safe.
