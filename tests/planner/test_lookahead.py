@@ -11,7 +11,15 @@ import pytest
 import setpoint_checks as sc
 import yaml
 
-from planner.lookahead import CHORD_MARGIN, _sensitive_points
+from planner.lookahead import (
+    CHORD_MARGIN,
+    PlanLimits,
+    _brake_first,
+    _Checker,
+    _passes,
+    _sensitive_points,
+    _Window,
+)
 from planner.nurbs import NurbsCurve
 from planner.stream import Path, plan_setpoints, stream_setpoints
 from planner.types import Limits, MotionState, SetpointBlock
@@ -176,6 +184,23 @@ def test_released_segments_cover_exactly_their_stretch():
     # The planned arc length advances by the planned feed: no step between segments.
     mid_feed = 0.5 * (block.feed_mm_s[:-1] + block.feed_mm_s[1:])
     assert np.abs(np.diff(block.s_mm) - mid_feed * T).max() < 0.02 * 20.0 * T
+
+
+def test_a_start_too_fast_for_a_staircase_brakes_in_one_segment():
+    # A feed limit falling from 30 to 10 mm/s over 2 mm, refined into points 0.1 mm apart: each
+    # is a point of zero acceleration, so from 40 mm/s the staircase cannot brake in time.
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    s_env = np.array([0.0, 1.0, 3.0, 10.0])
+    v_env = np.array([40.0, 30.0, 10.0, 10.0])
+    points = [0.0, *np.round(np.arange(1.0, 3.0001, 0.1), 6).tolist(), 10.0]
+    caps = [0.0, *np.interp(points[1:-1], s_env, v_env).tolist(), 0.0]
+    w = _Window(points, caps, [False] * (len(points) - 1))
+    v = _passes(w.s, w.cap, 40.0, lim)
+    assert any(v[k] > w.cap[k] for k in range(1, len(w.s)))
+    assert _brake_first(w, v, _Checker(s_env, v_env, lim))
+    v = _passes(w.s, w.cap, 40.0, lim)
+    assert all(v[k] <= w.cap[k] * (1.0 + 1e-9) for k in range(1, len(w.s)))
+    assert w.braking and w.peak_cap[0] <= 10.0
 
 
 def test_first_block_of_a_long_curve_is_fast():
