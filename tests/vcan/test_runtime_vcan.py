@@ -226,10 +226,21 @@ def end_counts() -> list[int]:
 
 
 def run_paper_to_the_end(machine: VcanMachine) -> None:
+    """Start the curve and wait for its end, then for the drives' last feedback.
+
+    The runtime reports the curve finished when it has sent the last setpoint; the drives'
+    actual positions reach it one period later, and in the VM several periods later.
+    """
     client = machine.client
     assert client.command(CommandCode.START).result is CommandResult.DONE
     status = machine.wait_for(lambda s: s.snapshot.state is not S.MOVING, 60, "the curve's end")
     assert status.snapshot.state is S.STANDBY, status.snapshot.message
+    time.sleep(10 * PERIOD_MS / 1000 * TIMEOUT_SCALE)
+
+
+def assert_axes_at_the_end(status: StatusSnapshot) -> None:
+    for axis, target in zip(status.axes, end_counts(), strict=True):
+        assert abs(axis.actual_mm * COUNTS_PER_MM - target) <= 1.0, (axis.name, axis.actual_mm)
 
 
 def test_boot_configures_every_drive_by_sdo(machine: VcanMachine, listener: CanListener) -> None:
@@ -358,12 +369,10 @@ def test_curve_runs_to_the_end_with_exact_frames(
     listener.clear()
     before, read_before_s = timed_status(client)
     run_paper_to_the_end(machine)
-    time.sleep(10 * PERIOD_MS / 1000 * TIMEOUT_SCALE)
     status, read_after_s = timed_status(client)
     frames = listener.frames()
     cycles_run = status.stats.cycles - before.stats.cycles
-    for axis, target in zip(status.axes, end_counts(), strict=True):
-        assert abs(axis.actual_mm * COUNTS_PER_MM - target) <= 1.0, (axis.name, axis.actual_mm)
+    assert_axes_at_the_end(status)
 
     syncs = [f for f in frames if f.can_id == SYNC]
     period_s = PERIOD_MS / 1000
@@ -439,6 +448,4 @@ def test_killed_drive_is_detected_then_restarted_and_recovered(
     assert client.command(CommandCode.RESET).result is CommandResult.DONE
     machine.wait_for(lambda s: s.snapshot.state is S.STANDBY, 60, "STANDBY after reset")
     run_paper_to_the_end(machine)
-    status = client.status().snapshot
-    for axis, target in zip(status.axes, end_counts(), strict=True):
-        assert abs(axis.actual_mm * COUNTS_PER_MM - target) <= 1.0
+    assert_axes_at_the_end(client.status().snapshot)
