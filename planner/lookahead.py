@@ -193,6 +193,8 @@ class FeedEnvelope:
             corner = (norms > 0.0) & (cos_turn < 1.0 - CORNER_COS_TOL)
             v[knot_rows[corner]] = 0.0
             kappa[knot_rows[corner]] = np.inf
+        samples = (u, v, d1, d2)
+        extras = []
         peaks = self._refined_maxima(u, kappa)
         if peaks.size:
             # A second parabola, through the first vertex and two neighbours a tenth of the grid
@@ -200,20 +202,19 @@ class FeedEnvelope:
             i = np.clip(np.searchsorted(u, peaks), 1, len(u) - 1)
             width = 0.1 * (u[i] - u[i - 1])
             trio = np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1])
-            k_trio, _, _, _ = self._limit(trio.ravel())
-            second = self._refined_maxima(trio.ravel(), k_trio)
-            peaks = np.concatenate([peaks, trio.ravel(), second])
-        samples = (u, v, d1, d2)
+            trio = trio.ravel()
+            k_trio, v_trio, d1_trio, d2_trio = self._limit(trio)
+            extras.append((trio, v_trio, d1_trio, d2_trio))
+            extras.append(self._sampled(self._refined_maxima(trio, k_trio)))
         cusps = self._cusps(u, d1)
         if cusps.size:
-            samples = self._merged(samples, cusps, stop=True)
-        extra = np.concatenate(
-            [peaks, self._corner_grid(samples[0], samples[1]), self._tight_midpoints(u, v)]
-        )
-        extra = extra[(extra > u[0]) & (extra < u[-1])]
-        if extra.size:
-            samples = self._merged(samples, extra, stop=False)
-        u, v, d1, d2 = samples
+            # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
+            _, _, d1_cusp, d2_cusp = self._limit(cusps)
+            cusp_samples = (cusps, np.zeros(cusps.size), np.zeros_like(d1_cusp), d2_cusp)
+            samples = self._merged(samples, [cusp_samples])
+        extras.append(self._sampled(self._corner_grid(samples[0], samples[1])))
+        extras.append(self._tight_midpoints(u, v))
+        u, v, d1, d2 = self._merged(samples, extras)
         s = self._arc_lengths(u, v, d1, d2)
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
@@ -230,20 +231,26 @@ class FeedEnvelope:
         kappa, v = geometric_feed_limit(d1, d2, self._planning_limits, self._T)
         return kappa, v, d1, d2
 
+    def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Samples (u, v_limit, C', C'') at u."""
+        _, v, d1, d2 = self._limit(u)
+        return u, v, d1, d2
+
+    @staticmethod
     def _merged(
-        self, samples: tuple[np.ndarray, ...], extra: np.ndarray, *, stop: bool
+        samples: tuple[np.ndarray, ...], extras: list[tuple[np.ndarray, ...]]
     ) -> tuple[np.ndarray, ...]:
-        """Samples (u, v_limit, C', C'') with ``extra`` parameters added in order; with ``stop``
-        the new samples are cusps: v_limit 0 and C' = 0 (located to round-off, where |C'| has
-        its kink)."""
-        _, v_extra, d1_extra, d2_extra = self._limit(extra)
-        if stop:
-            v_extra = np.zeros(extra.size)
-            d1_extra = np.zeros_like(d1_extra)
-        merged = [
-            np.concatenate([old, new])
-            for old, new in zip(samples, (extra, v_extra, d1_extra, d2_extra), strict=True)
-        ]
+        """Samples (u, v_limit, C', C'') with the extra ones strictly inside them added, in
+        order of u."""
+        lo, hi = samples[0][0], samples[0][-1]
+        parts = [samples]
+        for extra in extras:
+            inside = (extra[0] > lo) & (extra[0] < hi)
+            if inside.any():
+                parts.append(tuple(column[inside] for column in extra))
+        if len(parts) == 1:
+            return samples
+        merged = [np.concatenate(columns) for columns in zip(*parts, strict=True)]
         order = np.argsort(merged[0], kind="stable")
         return tuple(column[order] for column in merged)
 
@@ -293,21 +300,19 @@ class FeedEnvelope:
             np.append(np.arange(0, n, ANCHOR_EVERY), n - 1), np.flatnonzero(v == 0)
         )
         s_anchor = self._arc.s_of_u(u[anchors])
+        # anchors holds the first and the last sample, so every sample has a piece.
         piece = np.minimum(
             np.searchsorted(anchors, np.arange(n), side="right") - 1, len(anchors) - 2
         )
-        piece = np.maximum(piece, 0)
         c0, c1 = cumulative[anchors[:-1]], cumulative[anchors[1:]]
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(c1 > c0, np.diff(s_anchor) / (c1 - c0), 0.0)
-        if len(anchors) < 2:
-            return s_anchor
         s = s_anchor[piece] + (cumulative - c0[piece]) * scale[piece]
         s[anchors] = s_anchor
         return np.maximum.accumulate(s)
 
-    def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Parameters added where the grid is coarse for the feed limit.
+    def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Samples (u, v_limit, C', C'') added where the grid is coarse for the feed limit.
 
         The limit is interpolated linearly between samples, which is only safe where it changes
         little: an interval is halved, up to ``TIGHT_LEVELS`` times, while its limit changes by
@@ -326,15 +331,16 @@ class FeedEnvelope:
                 )
             if not coarse.any():
                 break
-            mid = 0.5 * (lo[coarse] + hi[coarse])
-            _, v_mid, _, _ = self._limit(mid)
+            mid = self._sampled(0.5 * (lo[coarse] + hi[coarse]))
             added.append(mid)
-            lo, hi = np.concatenate([lo[coarse], mid]), np.concatenate([mid, hi[coarse]])
+            lo, hi = np.concatenate([lo[coarse], mid[0]]), np.concatenate([mid[0], hi[coarse]])
             v_lo, v_hi = (
-                np.concatenate([v_lo[coarse], v_mid]),
-                np.concatenate([v_mid, v_hi[coarse]]),
+                np.concatenate([v_lo[coarse], mid[1]]),
+                np.concatenate([mid[1], v_hi[coarse]]),
             )
-        return np.concatenate(added) if added else np.empty(0)
+        if not added:
+            return self._sampled(np.empty(0))
+        return tuple(np.concatenate(columns) for columns in zip(*added, strict=True))
 
     @staticmethod
     def _refined_maxima(u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
@@ -452,7 +458,7 @@ def _passes(s: list[float], cap: list[float], v_start: float, lim: PlanLimits) -
         v[k] = min(back[k], max_ramp_speed(v[k - 1], L, lim.A, lim.J))
         fits = L * (1.0 + RAMP_FIT_RTOL)
         if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], lim.A, lim.J) > fits:
-            if ramp_distance_mm(v[k - 1], 0.0, lim.A, lim.J) <= fits:
+            if braking_distance_mm(v[k - 1], lim.A, lim.J) <= fits:
                 # Stopping fits where slowing to v[k] does not: slow down further instead.
                 v[k] = fitting_lower_speed(v[k - 1], v[k], L, lim.A, lim.J)
             else:
@@ -565,34 +571,38 @@ def _refine(w: _Window, checker: _Checker, v_start: float, lim: PlanLimits) -> l
     """
     verdicts: dict[tuple, tuple[float, float] | None] = {}
     v = _passes(w.s, w.cap, v_start, lim)
-    for _ in range(MAX_REFINEMENTS):
-        if _brake_first(w, v, checker):
+    for flatten in (False, True):
+        if flatten:
+            w.cosine = [2 if kind == 1 else kind for kind in w.cosine]
             v = _passes(w.s, w.cap, v_start, lim)
-        failing = _failing(w, v, checker, lim, verdicts)
-        if not failing:
-            return v
-        changed = False
-        for k, bad in failing:
-            changed |= _repair(w, k, v, bad, checker, lim)
-        v = _passes(w.s, w.cap, v_start, lim)
-        if not changed or len(w.s) > MAX_WINDOW_POINTS:
-            break
-    w.cosine = [2 if kind == 1 else kind for kind in w.cosine]
-    v = _passes(w.s, w.cap, v_start, lim)
-    for _ in range(MAX_REFINEMENTS):
-        if _brake_first(w, v, checker):
+        for _ in range(MAX_REFINEMENTS):
+            if _brake_first(w, v, checker):
+                v = _passes(w.s, w.cap, v_start, lim)
+            failing = _failing(w, v, checker, lim, verdicts)
+            if not failing:
+                return v
+            changed = False
+            for k, bad in failing:
+                if flatten:
+                    changed |= _flatten(w, k, checker)
+                else:
+                    changed |= _repair(w, k, v, bad, checker, lim)
             v = _passes(w.s, w.cap, v_start, lim)
-        failing = _failing(w, v, checker, lim, verdicts)
-        if not failing:
-            break
-        for k, _ in failing:
-            floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
-            w.peak_cap[k] = min(w.peak_cap[k], floor)
-            for i in (k, k + 1):
-                if i > 0:
-                    w.cap[i] = min(w.cap[i], floor)
-        v = _passes(w.s, w.cap, v_start, lim)
+            if not changed or (not flatten and len(w.s) > MAX_WINDOW_POINTS):
+                break
     return v
+
+
+def _flatten(w: _Window, k: int, checker: _Checker) -> bool:
+    """Hold segment k, and its end points, under the lowest limit it spans; whether it changed."""
+    floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
+    changed = w.peak_cap[k] > floor
+    w.peak_cap[k] = min(w.peak_cap[k], floor)
+    for i in (k, k + 1):
+        if i > 0 and w.cap[i] > floor:
+            w.cap[i] = floor
+            changed = True
+    return changed
 
 
 def _brake_first(w: _Window, v: list[float], checker: _Checker) -> bool:
