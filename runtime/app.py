@@ -44,13 +44,21 @@ from runtime.status import MachineState, StatusSnapshot
 logger = logging.getLogger(__name__)
 
 DEMO_CURVE = FilePath("configs/curves/paper.yaml")
-#: SYNC-loss limit of in-process simulated drives, in periods. Real drives use 1.5 to 2; drives
-#: simulated in this process share its interpreter lock with the planner worker, so their SYNC
-#: callbacks can lag several periods behind a SYNC that went out on time.
-SIMULATED_SYNC_TIMEOUT_PERIODS = 10.0
+#: SYNC-loss limit of in-process simulated drives, in periods beyond the longest SYNC gap the
+#: cycle's overrun limit tolerates. Real drives use 1.5 to 2 periods; drives simulated in this
+#: process share its interpreter lock with the planner worker, so their SYNC callbacks can lag
+#: behind a SYNC that went out on time, and the master's own overrun limit is the one that
+#: should decide whether a late cycle stops the machine.
+SIMULATED_SYNC_MARGIN_PERIODS = 1
 _IN_MOTION = (MachineState.MOVING, MachineState.HOLDING, MachineState.STOPPING)
 EXIT_OK = 0
 EXIT_FAILURE = 1
+
+
+def simulated_sync_timeout_periods(config: MachineConfig) -> float:
+    """SYNC-loss limit of in-process simulated drives, periods: a run of ``overrun_limit``
+    missed periods leaves a SYNC gap of ``overrun_limit + 1`` periods, which they tolerate."""
+    return float(config.cycle.overrun_limit + 1 + SIMULATED_SYNC_MARGIN_PERIODS)
 
 
 def master_settings(config: MachineConfig) -> MasterSettings:
@@ -201,7 +209,7 @@ def start_machine(config: MachineConfig, *, serve_hmi: bool = True) -> Iterator[
                 config.can.interface,
                 config.can.channel,
                 [axis.node_id for axis in config.axes],
-                model=DriveModel(sync_timeout_factor=SIMULATED_SYNC_TIMEOUT_PERIODS),
+                model=DriveModel(sync_timeout_factor=simulated_sync_timeout_periods(config)),
                 bitrate=config.can.bitrate,
             )
             stack.callback(simulated.close)

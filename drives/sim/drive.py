@@ -17,7 +17,10 @@ their data changed). FAULT REACTION ACTIVE lasts at least one SYNC. The heartbea
 until 0x1017 is written (the CiA 301 default 0). A watchdog thread per drive sends heartbeats and
 detects SYNC loss (no SYNC for ``sync_timeout_factor`` x 0x1006 while OPERATION ENABLED -> fault
 0x8100) and master heartbeat loss (0x1016 -> EMCY 0x8130 and the 0x6007 reaction); once SYNC
-is lost it also finishes running quick stop and fault reaction ramps on its own clock.
+is lost it also finishes running quick stop and fault reaction ramps on its own clock. A watchdog
+that wakes more than a period late was stalled with its process (drives simulated in the
+master's process share its interpreter), so SYNCs that went out meanwhile may still wait in the
+receive thread: it gives them one period before it calls the silence SYNC loss.
 
 Units: counts, counts/s, counts/s²; times per object (0x1006 µs, 0x1016/0x1017/0x6066 ms).
 
@@ -210,6 +213,7 @@ class SimulatedDrive:
         self._fault_reaction_reported = False
         self._fe_over_s = 0.0
         self._last_sync: float | None = None
+        self._sync_grace_until: float | None = None
         self._last_step: float = 0.0
         self._next_heartbeat: float | None = None
         self._consumers: dict[int, float] = {}  # node-ID -> timeout s
@@ -684,6 +688,8 @@ class SimulatedDrive:
                 ):
                     return
                 now = self._clock()
+                if self._last_sync is None:
+                    self._wake.set()  # SYNC supervision starts: the watchdog learns its limit
                 self._last_sync = now
                 operational = self._nmt is NmtState.OPERATIONAL
                 if operational and self._latched:
@@ -816,6 +822,8 @@ class SimulatedDrive:
             self._fe_over_s = 0.0
             if self._last_sync is not None:
                 self._last_sync = self._clock()  # SYNC supervision restarts with the enable
+                self._sync_grace_until = None
+                self._wake.set()
         elif transition == 15:
             self._image[objects.ERROR_CODE] = emcy.EMCY_ERROR_RESET
             self._image[objects.ERROR_REGISTER] = 0
@@ -982,10 +990,19 @@ class SimulatedDrive:
             and self._params[(objects.COMM_CYCLE_PERIOD, 0)] > 0
         ):
             limit = self._last_sync + self.model.sync_timeout_factor * period_s
-            if now > limit:
-                self._fault(emcy.EMCY_COMMUNICATION)
-            else:
+            if now <= limit:
+                self._sync_grace_until = None
                 deadline = min(deadline, limit)
+            elif self._sync_grace_until is None and now - limit > period_s:
+                # The watchdog is woken whenever SYNC supervision (re)starts, so it always waits
+                # for ``limit`` at the latest: this late, the whole process stalled.
+                self._sync_grace_until = now + period_s
+                deadline = min(deadline, self._sync_grace_until)
+            elif self._sync_grace_until is not None and now < self._sync_grace_until:
+                deadline = min(deadline, self._sync_grace_until)
+            else:
+                self._sync_grace_until = None
+                self._fault(emcy.EMCY_COMMUNICATION)
 
         if self._state in _MOTION_STATES:
             silent_periods = max(self.FREE_RUN_AFTER_PERIODS, self.model.sync_timeout_factor)
@@ -1049,8 +1066,10 @@ def start_simulated_drives(
     model: DriveModel = DEFAULT_MODEL,
     bitrate: int | None = None,
     boot_delay_s: float = 0.0,
+    clock: Callable[[], float] = time.monotonic,
 ) -> SimulatedDriveSet:
-    """Open a bus of their own, create one simulated drive per node-ID and power them on.
+    """Open a bus of their own, create one simulated drive per node-ID and power them on
+    (``model``, ``boot_delay_s`` and ``clock`` as for :class:`SimulatedDrive`).
 
     :raises ValueError: if a node-ID is outside 1..127 or repeated.
     :raises drives.errors.BusUnavailable: if the bus cannot be opened.
@@ -1064,7 +1083,9 @@ def start_simulated_drives(
     drive_set = SimulatedDriveSet(network, {})
     try:
         drives = {
-            node_id: SimulatedDrive(network, node_id, model=model, boot_delay_s=boot_delay_s)
+            node_id: SimulatedDrive(
+                network, node_id, model=model, boot_delay_s=boot_delay_s, clock=clock
+            )
             for node_id in node_ids
         }
         drive_set = SimulatedDriveSet(network, drives)

@@ -43,7 +43,12 @@ def _wait_for(predicate: Callable[[], bool], timeout_s: float = REPLY_TIMEOUT_S)
 class Bench:
     """A master Network with a RemoteNode and a simulated drive set on one virtual channel."""
 
-    def __init__(self, model: DriveModel = PATIENT, boot_delay_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        model: DriveModel = PATIENT,
+        boot_delay_s: float = 0.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         channel = f"sim-drive-{uuid.uuid4().hex}"
         self.master = canopen.Network()
         self.master.NOTIFIER_CYCLE = 0.05
@@ -52,7 +57,7 @@ class Bench:
         self.frames: list[can.Message] = []
         self.master.notifier.add_listener(self.frames.append)
         self.drive_set = start_simulated_drives(
-            "virtual", channel, [NODE], model=model, boot_delay_s=boot_delay_s
+            "virtual", channel, [NODE], model=model, boot_delay_s=boot_delay_s, clock=clock
         )
         self.drive = self.drive_set.drives[NODE]
         self.node = self.master.add_node(NODE, build_drive_od(NODE))
@@ -406,6 +411,74 @@ def test_sync_loss_faults_with_emcy_8100():
         assert bench.drive.error_code == emcy.EMCY_COMMUNICATION
     finally:
         bench.close()
+
+
+class SteppedClock:
+    """A monotonic clock that moves only when the test moves it, s."""
+
+    def __init__(self) -> None:
+        self.now_s = 1000.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+#: 0x1006 of the stepped-clock tests, s; their SYNC timeout is 2 periods.
+STEPPED_PERIOD_S = 0.02
+
+
+@pytest.fixture
+def stepped():
+    """A drive OPERATION ENABLED on a stepped clock, its SYNC supervision started."""
+    clock = SteppedClock()
+    bench = Bench(model=DriveModel(sync_timeout_factor=2.0), clock=clock)
+    try:
+        bench.node.sdo[objects.COMM_CYCLE_PERIOD].raw = int(STEPPED_PERIOD_S * 1e6)
+        bench.node.sdo[objects.MODES_OF_OPERATION].raw = objects.MODE_CSP
+        _sync(bench)
+        for controlword in (0x06, 0x07, 0x0F):
+            bench.node.sdo[objects.CONTROLWORD].raw = controlword
+        assert bench.drive.state is State.OPERATION_ENABLED
+        yield bench, clock
+    finally:
+        bench.close()
+
+
+def _sync(bench: Bench) -> None:
+    """Send a SYNC and return once the drive has taken it (an SDO answer comes after it)."""
+    bench.master.sync.transmit()
+    bench.node.sdo.upload(objects.STATUSWORD, 0)
+
+
+def _advance(bench: Bench, clock: SteppedClock, periods: float) -> None:
+    """Move the clock and let the watchdog run on it (it waits on real time otherwise)."""
+    clock.now_s += periods * STEPPED_PERIOD_S
+    bench.drive._wake.set()
+    time.sleep(0.1)
+
+
+def test_a_watchdog_stalled_with_its_process_gives_waiting_syncs_a_period(stepped):
+    """A watchdog run more than a period after the SYNC limit was stalled with its process
+    (drives simulated in the master's process stall with it): a SYNC that waited in the receive
+    thread meanwhile keeps the drive enabled. On time, the same silence faults at once."""
+    bench, clock = stepped
+    _advance(bench, clock, 10)  # a stall: 8 periods past the 2-period limit
+    assert bench.drive.state is State.OPERATION_ENABLED
+    _sync(bench)
+    _advance(bench, clock, 1)
+    assert bench.drive.state is State.OPERATION_ENABLED
+    _advance(bench, clock, 1.5)  # half a period past the limit: the watchdog is on time
+    assert bench.wait_emcy(emcy.EMCY_COMMUNICATION)
+    assert bench.drive.error_code == emcy.EMCY_COMMUNICATION
+
+
+def test_a_stalled_watchdog_faults_when_no_sync_follows_within_a_period(stepped):
+    bench, clock = stepped
+    _advance(bench, clock, 10)
+    assert bench.drive.state is State.OPERATION_ENABLED
+    _advance(bench, clock, 1)
+    assert bench.wait_emcy(emcy.EMCY_COMMUNICATION)
+    assert bench.drive.error_code == emcy.EMCY_COMMUNICATION
 
 
 def test_master_heartbeat_loss_sends_8130_and_faults(bench):
