@@ -3,13 +3,13 @@
 - Real-time factor: motion time / CPU time to prepare the path, plan and interpolate every
   setpoint (target >= 1000; the fastest of three runs), on the paper's curve and on a long
   smooth random curve. The paper's curve moves for under 2 s, so the fixed cost of a plan
-  (arc-length table, envelope, and the look-ahead's refinement of its curvature region into a
-  few hundred sensitive points, in Python) dominates there.
+  (arc-length table, envelope, look-ahead, and the arc-length inversion of each batch of rows)
+  dominates there.
 - Motion time / acceleration-limited lower bound (forward-backward v² pass on a fine arc grid
   with the same vmax, chord-error and amax limits; motion-planning.md §7), per chord error.
   What separates the plan from the bound: the jerk limit (every speed change takes A/J longer,
   most visible at the start and end), and zero acceleration at sensitive points, so that where
-  the feed limit keeps changing the plan follows it as a staircase touching it at its points.
+  the feed limit keeps changing the plan follows it as a staircase of S-curves below it.
 - Feed fluctuation of the parameter update, taylor2 (eq. (2)) against corrected: max and mean
   |realised / planned - 1|, with the realised step the arc length between consecutive setpoints
   (arc-based) and the chord between them (chord-based, shorter by (kappa L)²/24).

@@ -495,6 +495,26 @@ class _Checker:
         inner = self.v_env[i0:i1]
         return float(min(ends.min(), inner.min())) if inner.size else float(ends.min())
 
+    def flat_end_cap(self, s_point: float, s_lo: float, s_hi: float, v_limit: float) -> float:
+        """Highest feed at most ``v_limit`` for a sensitive point at s_point between s_lo and
+        s_hi, as far as the limit around it allows.
+
+        The plan has zero acceleration at a sensitive point, so a time tau before or after it
+        its feed is at least v - drop(tau), where drop is the jerk-limited change from rest
+        (J tau²/2, then A tau - A²/2J); where the limit rises towards the point or falls away
+        from it faster than that, a point capped at the limit itself would be exceeded next to
+        it by every plan. With tau = |s - s_point| / v, the cap is min(limit(s) + drop(tau)),
+        which holds as well for the lower cap it gives (drop grows as v falls).
+        """
+        lo = int(np.searchsorted(self.s_env, s_lo, side="right"))
+        hi = int(np.searchsorted(self.s_env, s_hi, side="left"))
+        if hi <= lo or v_limit <= 0.0:
+            return v_limit
+        A, J = self.lim.A, self.lim.J
+        tau = np.abs(self.s_env[lo:hi] - s_point) / v_limit
+        drop = np.where(tau <= A / J, 0.5 * J * tau * tau, A * tau - 0.5 * A * A / J)
+        return float(min(v_limit, np.min(self.v_env[lo:hi] + drop)))
+
     def worst_of(
         self, segments: list[tuple[float, float, list[Phase], float, float]]
     ) -> list[tuple[float, float] | None]:
@@ -665,11 +685,13 @@ def _repair(
 ) -> bool:
     """One repair of segment k: cosine re-plan (F_v_plan), a new point, or a lower peak.
 
-    A new sensitive point goes to the worst excess, capped by the feed limit there; the two
-    halves are checked again, so refinement converges to a staircase that touches the limit at
-    its points where the limit keeps changing (capping at the segment's lowest limit instead
-    would hold whole stretches below it). A segment that can no longer be split is held under
-    its lowest limit by its peak.
+    A new sensitive point goes to the worst excess, capped by the feed limit there as far as a
+    point of zero acceleration can meet it (:meth:`_Checker.flat_end_cap`); the two halves are
+    checked again, so refinement converges to a staircase that follows the limit where it keeps
+    changing (capping at the segment's lowest limit instead would hold whole stretches below
+    it). A segment that can no longer be split, or whose ends and worst excess are all at its
+    lowest limit (a flat stretch, where halves would repeat the problem), is held under that
+    limit by its peak.
     """
     s_bad, v_limit_bad = bad
     L = w.s[k + 1] - w.s[k]
@@ -687,11 +709,15 @@ def _repair(
         else:
             w.cosine[k] = 2
         return True
-    splittable = not (k == 0 and w.braking)
-    if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
-        w.insert(k, s_bad, min(v_limit_bad, lim.vmax_mm_s))
-        return True
     floor = checker.interior_min(w.s[k], w.s[k + 1])
+    # Ends at the lowest limit of the segment and the excess where the limit is that low
+    # (a plateau): a point there would leave both halves the same problem.
+    plateau = max(v[k], v[k + 1], v_limit_bad) <= floor * (1.0 + CHECK_SLACK)
+    splittable = not (k == 0 and w.braking) and not plateau
+    if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
+        cap = checker.flat_end_cap(s_bad, w.s[k], w.s[k + 1], min(v_limit_bad, lim.vmax_mm_s))
+        w.insert(k, s_bad, cap)
+        return True
     if max(v[k], v[k + 1]) <= floor * (1.0 + CHECK_SLACK):
         if w.peak_cap[k] > floor * (1.0 + 1e-12):
             w.peak_cap[k] = floor

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 import tracemalloc
 from pathlib import Path as FilePath
@@ -17,6 +18,8 @@ from planner.lookahead import (
     _brake_first,
     _Checker,
     _passes,
+    _refine,
+    _segment,
     _sensitive_points,
     _Window,
 )
@@ -201,6 +204,27 @@ def test_a_start_too_fast_for_a_staircase_brakes_in_one_segment():
     v = _passes(w.s, w.cap, 40.0, lim)
     assert all(v[k] <= w.cap[k] * (1.0 + 1e-9) for k in range(1, len(w.s)))
     assert w.braking and w.peak_cap[0] <= 10.0
+
+
+def test_a_smooth_dip_of_the_feed_limit_takes_a_few_points():
+    # A convex dip to 60 mm/s with a flat bottom (as dilation leaves a curvature peak). Points
+    # capped at the limit itself were each exceeded next to them (a zero-acceleration point
+    # meets a rising limit too flat) and the segment along the bottom was split again and again:
+    # over 500 points, until the fallback flattened them. Now the flanks take a few points and
+    # the approach to the flat bottom converges geometrically (each new point halves the gap).
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    s_env = np.linspace(0.0, 40.0, 401)
+    v_env = np.minimum(60.0 + 0.8 * np.maximum(np.abs(s_env - 20.0) - 0.2, 0.0) ** 2, 150.0)
+    pts, cap, fv = _sensitive_points(s_env, v_env, 0.0, 40.0, lim.vmax_mm_s)
+    w = _Window([*pts, 40.0], [*cap, 0.0], [*fv, False])
+    checker = _Checker(s_env, v_env, lim)
+    v = _refine(w, checker, 0.0, lim)
+    assert len(w.s) < 30
+    assert all(math.isinf(p) for k, p in enumerate(w.peak_cap) if w.cap[k] != 60.0)
+    segments = [(w.s[k], v[k], *_segment(w, k, v, lim), w.s[k + 1]) for k in range(len(w.s) - 1)]
+    assert checker.worst_of(segments) == [None] * len(segments)
+    # The plan reaches the bottom of the dip at its limit, not a step below it.
+    assert min(v[1:-1]) == pytest.approx(60.0)
 
 
 def test_first_block_of_a_long_curve_is_fast():
