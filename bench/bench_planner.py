@@ -1,8 +1,8 @@
 """Planner benchmark (not a test): prints real-time factors, time-optimality and feed fluctuation.
 
 - Real-time factor: motion time / CPU time to prepare the path, plan and interpolate every
-  setpoint (target >= 1000; the fastest of three runs), on the paper's curve and on a long
-  smooth random curve. The paper's curve moves for under 2 s, so the fixed cost of a plan
+  setpoint (target >= 1000; the fastest of three runs), on the paper's curve, on a long
+  smooth random curve and on a winding one whose feed limit keeps changing. The paper's curve moves for under 2 s, so the fixed cost of a plan
   (arc-length table, envelope, look-ahead, and the arc-length inversion of each batch of rows)
   dominates there.
 - Motion time / acceleration-limited lower bound (forward-backward v² pass on a fine arc grid
@@ -49,11 +49,13 @@ def paper_curve() -> NurbsCurve:
     return NurbsCurve.from_mapping(yaml.safe_load((ROOT / "configs/curves/paper.yaml").read_text()))
 
 
-def random_curve(spans: int, seed: int = 7) -> NurbsCurve:
+def random_curve(
+    spans: int, seed: int = 7, turn_rad: float = 0.12, step_mm: float = 15.0
+) -> NurbsCurve:
     rng = np.random.default_rng(seed)
     n = spans + 3
-    heading = np.cumsum(rng.normal(0.0, 0.12, n))
-    points = np.cumsum(np.c_[np.cos(heading), np.sin(heading)] * 15.0, axis=0)
+    heading = np.cumsum(rng.normal(0.0, turn_rad, n))
+    points = np.cumsum(np.c_[np.cos(heading), np.sin(heading)] * step_mm, axis=0)
     knots = np.concatenate([[0.0] * 4, np.arange(1, n - 3), [n - 3.0] * 4])
     return NurbsCurve.from_arrays(3, points, knots)
 
@@ -87,6 +89,7 @@ def main() -> None:
     for name, c in (
         ("paper, delta 1 um", curve),
         ("random smooth, delta 1 um", random_curve(2000)),
+        ("random winding, delta 1 um", random_curve(1000, seed=3, turn_rad=0.5, step_mm=3.0)),
     ):
         path, block, cpu = timed_plan(c, limits(1e-3), repeats=REPEATS)
         motion = (len(block) - 1) * T

@@ -103,10 +103,11 @@ class FeedEnvelope:
     """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
 
     Each grid sample carries the feed limit of :func:`planner.feed.geometric_feed_limit`, lowered
-    to the smallest limit within one period's step (T times its own limit, capped at
-    ``MAX_OVERRIDE_RATIO`` x vmax) on either side and at its grid neighbours, so that a step and
-    the linear interpolation between samples never see a larger curvature than planned. Sharp
-    corners (feed limit 0) keep their single zero sample and a grid refined towards them.
+    to the smallest limit, interpolated linearly between samples, within one period's step (T
+    times its own lowered limit, capped at ``MAX_OVERRIDE_RATIO`` x vmax) on either side and at
+    its grid neighbours, so that a step and the linear interpolation between samples never see
+    a larger curvature than planned. Sharp corners (feed limit 0) keep their single zero sample
+    and a grid refined towards them.
     """
 
     def __init__(self, curve: NurbsCurve, arc: ArcLengthTable, limits, period_s: float) -> None:
@@ -375,29 +376,49 @@ class FeedEnvelope:
     def _dilated(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Lower each sample to the limits a period's step from it can reach.
 
-        A step from s_i at feed w is w T long, so sample j constrains i when |s_i - s_j| <= w T:
-        the largest consistent w is min over j of max(v_j, |s_i - s_j| / T). Neighbours count
-        always (linear interpolation between samples), a corner's zero never (the plan stops
-        on it instead).
+        A step from s_i at feed w is w T long, so the limit f (linear between samples) at
+        distance x constrains it when x <= w T: the largest consistent w is the infimum over
+        x >= 0, ahead and behind, of max(f(s_i +- x), x / T). On each grid interval that is
+        reached at an end or where f crosses x / T; using the samples alone would leave a
+        sawtooth of spurious minima (sensitive points) wherever the limit falls steeply. A
+        corner's zero constrains nothing (the plan stops on it instead).
         """
-        n = len(s)
-        out = v.copy()
-        if n < 2:
-            return out
-        width = int(np.max(np.searchsorted(s, s + self._step_cap_mm, side="right") - np.arange(n)))
+        if len(s) < 2:
+            return v.copy()
+        ahead = self._reachable(s, v)
+        behind = self._reachable(-s[::-1], v[::-1])[::-1]
+        return np.where(v > 0.0, np.minimum(v, np.minimum(ahead, behind)), 0.0)
+
+    def _reachable(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """inf over x >= 0 of max(f(s_i + x), x / T) for increasing s, up to the step cap."""
+        n, T = len(s), self._T
+        out = np.full(n, np.inf)
         masked = np.where(v > 0.0, v, np.inf)
-        for k in range(1, max(width, 1) + 1):
-            gap = s[k:] - s[:-k]
-            reach = gap <= self._step_cap_mm
-            if k > 1 and not reach.any():
+        for k in range(1, n):
+            # Interval [s_{i+k-1}, s_{i+k}] seen from s_i, while its start is within reach.
+            i = np.arange(n - k)
+            j = i + k - 1
+            start_gap = s[j] - s[i]
+            near = start_gap <= self._step_cap_mm
+            if not near.any():
                 break
-            if k == 1:
-                reach[:] = True
-            ahead = np.where(reach, np.maximum(masked[k:], gap / self._T), np.inf)
-            behind = np.where(reach, np.maximum(masked[:-k], gap / self._T), np.inf)
-            out[:-k] = np.minimum(out[:-k], ahead)
-            out[k:] = np.minimum(out[k:], behind)
-        return np.where(v > 0.0, out, 0.0)
+            i, j, start_gap = i[near], j[near], start_gap[near]
+            end_gap = s[j + 1] - s[i]
+            out[i] = np.minimum(out[i], np.maximum(masked[j + 1], end_gap / T))
+            h = s[j + 1] - s[j]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                slope = (v[j + 1] - v[j]) / h
+                x = (v[j] + slope * (s[i] - s[j])) / (1.0 / T - slope)  # f(s_i + x) = x / T
+            crossing = (
+                (v[j] > 0.0)
+                & (v[j + 1] > 0.0)
+                & (h > 0.0)
+                & (slope < 1.0 / T)
+                & (x >= start_gap)
+                & (x <= end_gap)
+            )
+            out[i[crossing]] = np.minimum(out[i[crossing]], x[crossing] / T)
+        return out
 
 
 @dataclass(frozen=True)
