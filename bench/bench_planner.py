@@ -2,9 +2,9 @@
 
 - Real-time factor: motion time / CPU time to prepare the path, plan and interpolate every
   setpoint (target >= 1000; the fastest of three runs), on the paper's curve, on a long
-  smooth random curve and on a winding one whose feed limit keeps changing. The paper's curve moves for under 2 s, so the fixed cost of a plan
-  (arc-length table, envelope, look-ahead, and the arc-length inversion of each batch of rows)
-  dominates there.
+  smooth random curve and on a winding one whose feed limit keeps changing. The paper's curve
+  moves for under 2 s, so the fixed cost of a plan (arc-length table, envelope, look-ahead,
+  and the arc-length inversion of each batch of rows) dominates there.
 - Motion time / acceleration-limited lower bound (forward-backward v² pass on a fine arc grid
   with the same vmax, chord-error and amax limits; motion-planning.md §7), per chord error.
   What separates the plan from the bound: the jerk limit (every speed change takes A/J longer,

@@ -723,13 +723,13 @@ def _repair(
         return True
     if w.cosine[k] == 0 and w.fv_plan[k] and v[k] + v[k + 1] > 0.0:
         # F_v_plan = 1: re-plan this stretch with eqs. (5)-(13), unless that is slower than a
-        # staircase of S-curves could be (near a corner both end speeds may be ~0).
+        # staircase of S-curves could be (near a corner both end speeds may be ~0); then the
+        # S-curve is repaired at once.
         phases, _ = _segment(w, k, v, lim)
         if cosine_time_s(v[k], v[k + 1], L) <= sum(p.duration_s for p in phases):
             w.cosine[k] = 1
-        else:
-            w.cosine[k] = 2
-        return True
+            return True
+        w.cosine[k] = 2
     floor = checker.interior_min(w.s[k], w.s[k + 1])
     # Ends at the lowest limit of the segment and the excess where the limit is that low
     # (a plateau): a point there would leave both halves the same problem.
