@@ -95,6 +95,9 @@ MAX_REFINEMENTS, MAX_WINDOW_POINTS = 30, 300
 CHECK_SLACK = 1e-9
 #: Relative excess of a ramp over its distance still counted as fitting (round-off).
 RAMP_FIT_RTOL = 1e-9
+#: Time a failing segment may lose by cruising at its slower end's feed instead of being split,
+#: relative to its own (failing) time.
+HOLD_SLOWDOWN = 0.02
 #: Points closer than this are not inserted, mm.
 MIN_POINT_GAP_MM = 1e-7
 
@@ -735,6 +738,16 @@ def _repair(
     # (a plateau): a point there would leave both halves the same problem.
     plateau = max(v[k], v[k + 1], v_limit_bad) <= floor * (1.0 + CHECK_SLACK)
     splittable = not (k == 0 and w.braking) and not plateau
+    slow = min(v[k], v[k + 1])
+    if splittable and w.cosine[k] != 1 and w.peak_cap[k] > slow > 0.0:
+        # Cruising at the slower end's feed, changing speed next to the faster end, is the
+        # shape that stays under a limit falling towards the slower end; where it costs little
+        # time against the failing segment, it saves splitting again and again towards it.
+        fast_s = sum(p.duration_s for p in _segment(w, k, v, lim)[0])
+        peak_cap, w.peak_cap[k] = w.peak_cap[k], slow
+        if sum(p.duration_s for p in _segment(w, k, v, lim)[0]) <= (1.0 + HOLD_SLOWDOWN) * fast_s:
+            return True
+        w.peak_cap[k] = peak_cap
     if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
         cap = checker.flat_end_cap(s_bad, w.s[k], w.s[k + 1], min(v_limit_bad, lim.vmax_mm_s))
         w.insert(k, s_bad, cap)

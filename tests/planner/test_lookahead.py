@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import time
 import tracemalloc
 from pathlib import Path as FilePath
@@ -227,8 +226,9 @@ def test_a_smooth_dip_of_the_feed_limit_takes_a_few_points():
     # A convex dip to 60 mm/s with a flat bottom (as dilation leaves a curvature peak). Points
     # capped at the limit itself were each exceeded next to them (a zero-acceleration point
     # meets a rising limit too flat) and the segment along the bottom was split again and again:
-    # over 500 points, until the fallback flattened them. Now the flanks take a few points and
-    # the approach to the flat bottom converges geometrically (each new point halves the gap).
+    # over 500 points, until the fallback flattened them. Splitting towards the bottom would
+    # still take a point per halving of the gap; close to it a segment cruises at its slower
+    # end's feed instead.
     lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
     s_env = np.linspace(0.0, 40.0, 401)
     v_env = np.minimum(60.0 + 0.8 * np.maximum(np.abs(s_env - 20.0) - 0.2, 0.0) ** 2, 150.0)
@@ -236,8 +236,7 @@ def test_a_smooth_dip_of_the_feed_limit_takes_a_few_points():
     w = _Window([*pts, 40.0], [*cap, 0.0], [*fv, False])
     checker = _Checker(s_env, v_env, lim)
     v = _refine(w, checker, 0.0, lim)
-    assert len(w.s) < 30
-    assert all(math.isinf(p) for k, p in enumerate(w.peak_cap) if w.cap[k] != 60.0)
+    assert len(w.s) <= 10
     segments = [(w.s[k], v[k], *_segment(w, k, v, lim), w.s[k + 1]) for k in range(len(w.s) - 1)]
     assert checker.worst_of(segments) == [None] * len(segments)
     # The plan reaches the bottom of the dip at its limit, not a step below it.
