@@ -501,6 +501,11 @@ def _segment(w: _Window, k: int, v: list[float], lim: PlanLimits) -> tuple[list[
     return segment_phases(v0, vp, v1, L, lim.A, lim.J), max(v0, vp, v1)
 
 
+def _segment_time_s(w: _Window, k: int, v: list[float], lim: PlanLimits) -> float:
+    """Duration of segment k as planned."""
+    return sum(phase.duration_s for phase in _segment(w, k, v, lim)[0])
+
+
 class _Checker:
     """Compares a segment's planned feed with the envelope on the arc length."""
 
@@ -713,9 +718,11 @@ def _repair(
     point of zero acceleration can meet it (:meth:`_Checker.flat_end_cap`); the two halves are
     checked again, so refinement converges to a staircase that follows the limit where it keeps
     changing (capping at the segment's lowest limit instead would hold whole stretches below
-    it). A segment that can no longer be split, or whose ends and worst excess are all at its
-    lowest limit (a flat stretch, where halves would repeat the problem), is held under that
-    limit by its peak.
+    it). Before a split, a segment whose cruise at its slower end's feed costs at most
+    ``HOLD_SLOWDOWN`` of its time cruises there instead (towards a minimum of the limit the
+    splits would otherwise go on halving the gap). A segment that can no longer be split, or
+    whose ends and worst excess are all at its lowest limit (a flat stretch, where halves would
+    repeat the problem), is held under that limit by its peak.
     """
     s_bad, v_limit_bad = bad
     L = w.s[k + 1] - w.s[k]
@@ -728,8 +735,7 @@ def _repair(
         # F_v_plan = 1: re-plan this stretch with eqs. (5)-(13), unless that is slower than a
         # staircase of S-curves could be (near a corner both end speeds may be ~0); then the
         # S-curve is repaired at once.
-        phases, _ = _segment(w, k, v, lim)
-        if cosine_time_s(v[k], v[k + 1], L) <= sum(p.duration_s for p in phases):
+        if cosine_time_s(v[k], v[k + 1], L) <= _segment_time_s(w, k, v, lim):
             w.cosine[k] = 1
             return True
         w.cosine[k] = 2
@@ -743,9 +749,9 @@ def _repair(
         # Cruising at the slower end's feed, changing speed next to the faster end, is the
         # shape that stays under a limit falling towards the slower end; where it costs little
         # time against the failing segment, it saves splitting again and again towards it.
-        fast_s = sum(p.duration_s for p in _segment(w, k, v, lim)[0])
+        failing_s = _segment_time_s(w, k, v, lim)
         peak_cap, w.peak_cap[k] = w.peak_cap[k], slow
-        if sum(p.duration_s for p in _segment(w, k, v, lim)[0]) <= (1.0 + HOLD_SLOWDOWN) * fast_s:
+        if _segment_time_s(w, k, v, lim) <= (1.0 + HOLD_SLOWDOWN) * failing_s:
             return True
         w.peak_cap[k] = peak_cap
     if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
