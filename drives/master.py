@@ -91,8 +91,6 @@ __all__ = [
 #: RPDO1 payload: controlword (U16), target position (I32), little endian.
 RPDO1_STRUCT = struct.Struct("<Hi")
 
-_TARGET_HISTORY = 16  # targets kept per axis for the following-error check
-
 
 #: Faults after which a drive must be configured again (it was lost, restarted or reset).
 RECONFIGURE_FAULT_KINDS = frozenset({FaultKind.HEARTBEAT_LOSS, FaultKind.NMT, FaultKind.BOOT})
@@ -189,13 +187,16 @@ class MasterSettings:
             raise ValueError(
                 f"heartbeat_loss_periods = {self.heartbeat_loss_periods}, must be in (1, 3)"
             )
-        if not 0 <= self.feedback_lag_cycles < _TARGET_HISTORY:
-            raise ValueError(
-                f"feedback_lag_cycles = {self.feedback_lag_cycles}, "
-                f"must be in 0..{_TARGET_HISTORY - 1}"
-            )
+        if self.feedback_lag_cycles < 0:
+            raise ValueError(f"feedback_lag_cycles = {self.feedback_lag_cycles}, must be >= 0")
         if self.stale_feedback_cycles < 1:
             raise ValueError(f"stale_feedback_cycles = {self.stale_feedback_cycles}, must be >= 1")
+
+    @property
+    def target_history(self) -> int:
+        """Targets kept per axis: every TPDO1 the stale-feedback check still accepts is judged
+        for following error against the target it answered."""
+        return self.stale_feedback_cycles + self.feedback_lag_cycles + 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -227,7 +228,9 @@ class AxisFeedback:
 class _Axis:
     """Cyclic-thread state of one axis (the Notifier side lives in its supervisor)."""
 
-    def __init__(self, spec: AxisSpec, node: canopen.RemoteNode, supervisor: AxisSupervisor):
+    def __init__(
+        self, spec: AxisSpec, node: canopen.RemoteNode, supervisor: AxisSupervisor, history: int
+    ):
         self.spec = spec
         self.node = node
         self.supervisor = supervisor
@@ -238,7 +241,7 @@ class _Axis:
         self.state: State | None = None
         self.sample: TpdoSample | None = None
         self.target_counts = 0
-        self.sent_counts = [0] * _TARGET_HISTORY
+        self.sent_counts = [0] * history
 
 
 class Cia402Master:
@@ -295,7 +298,7 @@ class Cia402Master:
         # Subscribed directly (not through node.tpdo[1]) so the cyclic path decodes one struct
         # and does not depend on the PDO map object being loaded.
         self.network.subscribe(tpdo_cob_id(1, spec.node_id), supervisor.on_tpdo)
-        return _Axis(spec, node, supervisor)
+        return _Axis(spec, node, supervisor, self.settings.target_history)
 
     # -- boot and shutdown (main thread, blocking) ----------------------------------------------
 
@@ -401,7 +404,7 @@ class Cia402Master:
         axis.supervisor.seed(statusword, position_counts)
         axis.sample = axis.supervisor.tpdo
         axis.target_counts = position_counts
-        axis.sent_counts = [position_counts] * _TARGET_HISTORY
+        axis.sent_counts = [position_counts] * self.settings.target_history
 
     def _wait_operational(self, axes: Sequence[_Axis] | None = None) -> None:
         timeout_s = self.settings.boot_timeout_s
@@ -502,12 +505,13 @@ class Cia402Master:
             axis.sample = sample
             scaling = axis.spec.scaling
             position_mm = scaling.to_mm(sample.position_counts)
-            if state is State.OPERATION_ENABLED:
-                followed = axis.sent_counts[
-                    (sample.sync_count - self.settings.feedback_lag_cycles) % _TARGET_HISTORY
-                ]
+            followed_sync = sample.sync_count - self.settings.feedback_lag_cycles
+            if state is State.OPERATION_ENABLED and syncs - followed_sync < len(axis.sent_counts):
+                followed = axis.sent_counts[followed_sync % len(axis.sent_counts)]
                 following_error_mm = position_mm - scaling.to_mm(followed)
             else:
+                # Not enabled, or feedback older than the stale-feedback limit (that fault
+                # stands for it): no target to compare with.
                 following_error_mm = 0.0
             fault = (
                 supervisor.supervise(state, sample, heartbeat, emcy, following_error_mm, now_s)
@@ -569,7 +573,7 @@ class Cia402Master:
         """
         send = self.network.send_message
         sync_number = self._syncs.value + 1
-        slot = sync_number % _TARGET_HISTORY
+        slot = sync_number % self.settings.target_history
         for axis in self._axes:
             controlword = self._controlword(axis)
             if axis.state is not State.OPERATION_ENABLED and axis.sample is not None:

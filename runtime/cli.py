@@ -17,6 +17,7 @@ from pathlib import Path
 
 from runtime.config import DEFAULT_CONFIG_PATH, load_config
 from runtime.errors import ConfigError
+from runtime.logs import queued_logging
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -125,13 +126,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``softmotion`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=args.log_level,
-        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
-    )
     if args.log_level != "DEBUG":
         # canopen logs every SDO transfer and PDO mapping step at INFO.
         logging.getLogger("canopen").setLevel(logging.WARNING)
+    with queued_logging(args.log_level):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         if args.command == "run":
             from runtime.app import run_machine

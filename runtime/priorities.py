@@ -4,7 +4,8 @@ Python threads share one interpreter lock. A normal-priority thread of this proc
 the lock when the OS preempts it for another process keeps the SCHED_FIFO cyclic thread waiting
 until it runs again: on a loaded machine, tens of milliseconds. So every helper thread (CAN
 receive, Modbus server, simulated drives) runs SCHED_FIFO just below the cyclic thread, and the
-CPU-bound planner worker at the lowest real-time priority, where every other one preempts it.
+CPU-bound planner worker and the log writer (:mod:`runtime.logs`) at the lowest real-time
+priority, where every other one preempts them.
 
 Linux only; where SCHED_FIFO is refused, one warning says so and the threads keep their
 scheduler.
@@ -17,10 +18,13 @@ import os
 import threading
 from collections.abc import Collection
 
+from runtime.logs import LOG_WRITER_THREAD
+
 logger = logging.getLogger(__name__)
 
-#: Threads (by name) that compute rather than wait; they get the lowest real-time priority.
-BACKGROUND_THREADS = ("planner",)
+#: Threads (by name) that compute or write rather than wait for the bus; they get the lowest
+#: real-time priority.
+BACKGROUND_THREADS = ("planner", LOG_WRITER_THREAD)
 
 
 def prioritise_threads(

@@ -6,6 +6,7 @@ listener bus records what the master transmits.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import struct
 import time
@@ -43,6 +44,10 @@ class Rig:
 
 @pytest.fixture
 def rig() -> Iterator[Rig]:
+    yield from _rig(MasterSettings(period_s=0.004))
+
+
+def _rig(settings: MasterSettings) -> Iterator[Rig]:
     channel = f"test-master-{uuid.uuid4().hex}"
     network = canopen.Network()
     network.NOTIFIER_SHUTDOWN_TIMEOUT = 0.0
@@ -53,7 +58,7 @@ def rig() -> Iterator[Rig]:
         AxisSpec("X", 1, AxisScaling(1000.0, travel_min_mm=-100.0, travel_max_mm=100.0), 1.0, 20),
         AxisSpec("Y", 2, AxisScaling(1000.0, direction=-1), 1.0, 20),
     ]
-    master = Cia402Master(network, axes, MasterSettings(period_s=0.004))
+    master = Cia402Master(network, axes, settings)
     try:
         yield Rig(master, drive_bus, listener)
     finally:
@@ -167,6 +172,25 @@ def test_targets_keep_last_and_are_absolute(rig: Rig) -> None:
     assert _exchange_frames(rig)[1] == (0x202, RPDO1.pack(0x0F, -2000))
     feedback = master.read_feedback()
     assert feedback[1].commanded_mm == pytest.approx(2.0)
+
+
+def test_late_feedback_is_judged_against_the_target_it_answered() -> None:
+    # A stale-feedback limit of 25 cycles: every TPDO younger than that is compared with the
+    # target it answered, however far the targets moved since (a fixed history of 16 targets
+    # compared it with a newer one, a following error of 1.5 mm here).
+    with contextlib.contextmanager(_rig)(
+        MasterSettings(period_s=0.004, stale_feedback_cycles=25)
+    ) as rig:
+        master = rig.master
+        _play(rig, {1: (State.OPERATION_ENABLED, 0), 2: (State.OPERATION_ENABLED, 0)})
+        master.request_enable()
+        for k in range(1, 21):
+            master.write_targets([0.1 * k, 0.0])
+            master.exchange()
+        assert master.read_feedback()[0].following_error_mm == 0.0
+        _play(rig, {1: (State.OPERATION_ENABLED, 100), 2: (State.OPERATION_ENABLED, 0)})
+        # Fresh: answers SYNC 20, following the target of SYNC 19 (1.9 mm).
+        assert master.read_feedback()[0].following_error_mm == pytest.approx(0.1 - 1.9)
 
 
 def test_write_targets_checks_everything_before_applying(rig: Rig) -> None:
