@@ -9,12 +9,20 @@ a new snapshot every 4 ms and accepts every command at once (curve preparation =
 only), so the figures are those of the HMI path alone. ``--port P`` measures a running
 ``softmotion run`` instead (its machine must be DISABLED or STANDBY for the upload).
 
-Usage: ``python bench/bench_hmi.py [--port P] [--seconds S]``
+Then, unless ``--port`` is given, the cost of HMI traffic to the cycle: ``softmotion run`` on the
+simulated machine (a subprocess) runs the paper's curve alone and with ten clients reading the
+status at 20 Hz, ``--runs`` times each, alternating; the table gives the periods the cycle missed
+during each motion. On a shared host the run-to-run spread is part of the figure.
+
+Usage: ``python bench/bench_hmi.py [--port P] [--seconds S] [--runs N]``
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import sys
+import tempfile
 import threading
 import time
 from dataclasses import replace
@@ -30,6 +38,10 @@ from runtime.hmi.server import HmiServer
 from runtime.status import AxisStatus, StatusSnapshot
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from machine_process import Machine, run_paper_polled  # noqa: E402
+
 SIM = load_config(ROOT / "configs" / "sim.yaml")
 
 
@@ -130,6 +142,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--port", type=int, help="bench a running machine on this port")
     parser.add_argument("--seconds", type=float, default=3.0, help="per read measurement")
+    parser.add_argument("--runs", type=int, default=3, help="curve runs per cycle measurement")
     args = parser.parse_args()
     machine = server = None
     port = args.port
@@ -160,6 +173,29 @@ def main() -> None:
             server.stop()
         if machine is not None:
             machine.close()
+    if args.port is None:
+        # pymodbus logs every refused connection while a machine boots.
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        missed = cycle_misses(args.runs)
+        print()
+        print("periods the cycle missed during the paper's curve (softmotion run, simulated)")
+        for clients, counts in missed.items():
+            label = "alone" if clients == 0 else f"{clients} clients at 20 Hz"
+            print(f"  {label:<22} {' '.join(f'{n:>4d}' for n in counts)}")
+
+
+def cycle_misses(runs: int) -> dict[int, list[int]]:
+    """Periods missed during the paper's curve by a fresh ``softmotion run``, per client count."""
+    missed: dict[int, list[int]] = {0: [], 10: []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for run in range(runs):
+            for clients, counts in missed.items():
+                machine = Machine(Path(tmp) / f"{clients}-{run}")
+                try:
+                    counts.append(run_paper_polled(machine, clients)[0])
+                finally:
+                    machine.stop()
+    return missed
 
 
 if __name__ == "__main__":
