@@ -731,11 +731,12 @@ def _repair(
             return _lower_for_cosine(w, k, v, lim)
         w.cosine[k] = 2
         return True
+    failing_s = _segment_time_s(w, k, v, lim)
     if w.cosine[k] == 0 and w.fv_plan[k] and v[k] + v[k + 1] > 0.0:
         # F_v_plan = 1: re-plan this stretch with eqs. (5)-(13), unless that is slower than a
         # staircase of S-curves could be (near a corner both end speeds may be ~0); then the
         # S-curve is repaired at once.
-        if cosine_time_s(v[k], v[k + 1], L) <= _segment_time_s(w, k, v, lim):
+        if cosine_time_s(v[k], v[k + 1], L) <= failing_s:
             w.cosine[k] = 1
             return True
         w.cosine[k] = 2
@@ -745,11 +746,10 @@ def _repair(
     plateau = max(v[k], v[k + 1], v_limit_bad) <= floor * (1.0 + CHECK_SLACK)
     splittable = not (k == 0 and w.braking) and not plateau
     slow = min(v[k], v[k + 1])
-    if splittable and w.cosine[k] != 1 and w.peak_cap[k] > slow > 0.0:
+    if splittable and w.peak_cap[k] > slow > 0.0:
         # Cruising at the slower end's feed, changing speed next to the faster end, is the
         # shape that stays under a limit falling towards the slower end; where it costs little
         # time against the failing segment, it saves splitting again and again towards it.
-        failing_s = _segment_time_s(w, k, v, lim)
         peak_cap, w.peak_cap[k] = w.peak_cap[k], slow
         if _segment_time_s(w, k, v, lim) <= (1.0 + HOLD_SLOWDOWN) * failing_s:
             return True

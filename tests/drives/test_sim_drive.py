@@ -397,13 +397,18 @@ def test_heartbeat_producer_period_and_state(bench):
     assert 0.016 < mean_interval_s < 0.030
 
 
+def _enable_by_sdo(bench: Bench, cycle_us: int) -> None:
+    """Cycle period 0x1006, CSP and the controlwords to OPERATION ENABLED, all by SDO."""
+    bench.node.sdo[objects.COMM_CYCLE_PERIOD].raw = cycle_us
+    bench.node.sdo[objects.MODES_OF_OPERATION].raw = objects.MODE_CSP
+    for controlword in (0x06, 0x07, 0x0F):
+        bench.node.sdo[objects.CONTROLWORD].raw = controlword
+
+
 def test_sync_loss_faults_with_emcy_8100():
     bench = Bench(model=DriveModel(sync_timeout_factor=2.0))
     try:
-        bench.node.sdo[objects.COMM_CYCLE_PERIOD].raw = 20_000  # 20 ms: 40 ms SYNC timeout
-        bench.node.sdo[objects.MODES_OF_OPERATION].raw = objects.MODE_CSP
-        for controlword in (0x06, 0x07, 0x0F):
-            bench.node.sdo[objects.CONTROLWORD].raw = controlword
+        _enable_by_sdo(bench, 20_000)  # 20 ms: 40 ms SYNC timeout
         bench.master.sync.transmit()
         assert _wait_for(lambda: bench.drive.state is State.OPERATION_ENABLED)
         assert bench.wait_emcy(emcy.EMCY_COMMUNICATION)
@@ -433,12 +438,9 @@ def stepped():
     clock = SteppedClock()
     bench = Bench(model=DriveModel(sync_timeout_factor=2.0), clock=clock)
     try:
-        bench.node.sdo[objects.COMM_CYCLE_PERIOD].raw = int(STEPPED_PERIOD_S * 1e6)
-        bench.node.sdo[objects.MODES_OF_OPERATION].raw = objects.MODE_CSP
-        _sync(bench)
-        for controlword in (0x06, 0x07, 0x0F):
-            bench.node.sdo[objects.CONTROLWORD].raw = controlword
+        _enable_by_sdo(bench, int(STEPPED_PERIOD_S * 1e6))
         assert bench.drive.state is State.OPERATION_ENABLED
+        _sync(bench)
         yield bench, clock
     finally:
         bench.close()
