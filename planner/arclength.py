@@ -4,48 +4,47 @@ The parameter update of the paper (Wang, Zhao, Lu, Liu, China Mechanical Enginee
 2012, 299-304), eq. (2), predicts u by a Taylor expansion; its drift is removed by solving
 s(u) = s_target with the exact arc length, s(u) = integral of |C'(t)| dt from the first knot.
 
-The table is built once per curve. Every non-empty knot span is cut into ``samples_per_span``
-equal table intervals (|C'| is smooth inside a span). A group of intervals is accepted when the
-Gauss-Legendre value of the whole group agrees with the sum of the Gauss-Legendre values of its
-intervals to ``_RTOL`` relative (plus a tiny absolute floor); otherwise each interval becomes a
-group of its own and is cut again. The intervals of accepted groups, whose values are far more
-accurate than the coarse rule that was checked, form the table; their cumulative sums give
-s at the table points. All of it is vectorised over intervals, one numpy pass per refinement
-level.
+The table is built once per curve. The speed |C'| is smooth inside a knot span; on each table
+interval it is replaced by its Chebyshev interpolant of ``CHEBYSHEV_NODES`` nodes, and an
+interval whose last two coefficients say the interpolant is not accurate to ``_RTOL`` of the
+interval's length (plus a tiny absolute floor) is halved, starting from the knot spans. All of
+it is vectorised over intervals, one numpy pass per halving. The interpolant's antiderivative,
+a Chebyshev series too, is s(u) on its interval: s_of_u evaluates series and no curve.
 
-Between table points, s(u) = s(u_i) + Gauss-Legendre quadrature of |C'| over [u_i, u]; u(s)
-starts from quintic Hermite interpolation of u, du/ds and d2u/ds2 at the table points (or from
-a caller's guess inside the bracketing table interval) and takes Newton steps with
-ds/du = |C'(u)|, falling back to bisection of the bracket where a step would leave it (for
-example where C'(u) = 0 at a sharp corner). A step whose predicted error (d2s/du2)/2 du^2 is far
-below the tolerance is accepted without another evaluation, so the usual cost of u(s) is one
-quadrature and one evaluation of C', C'' at the answer.
+u(s) starts from quintic Hermite interpolation of u, du/ds and d2u/ds2 at the ends of the
+interval that holds s (or from a caller's guess inside that interval) and takes Newton steps on
+the series, with ds/du = |C'| from the interpolant, falling back to bisection of the bracket
+where a step would leave it (for example where C'(u) = 0 at a sharp corner). A step whose
+predicted error (the interval's bound of |d2s/du2| / 2 du^2) is far below the tolerance is
+accepted without another evaluation, so u(s) usually costs one or two series evaluations.
 
 Units: s and lengths in mm, u dimensionless.
-Accuracy: about 1e-9 relative to the curve length or better for s(u); u(s) meets
-|s(u) - s| <= 1e-10 mm, or the bracket shrinks to a few ulp of u.
+Accuracy: about 1e-11 relative to the curve length for s(u) where |C'| is smooth (at a cusp
+inside a span, down to the absolute floor); u(s) meets |s(u) - s| <= 1e-10 mm, or the bracket
+shrinks to a few ulp of x.
 Thread safety: immutable after construction; may be shared between threads.
 Not modelled: lengths of offset curves or of anything but the curve itself.
 """
 
 from __future__ import annotations
 
-from numbers import Integral
-
 import numpy as np
+from numpy.polynomial import chebyshev
 from numpy.typing import ArrayLike
 
 from planner.errors import CurveError, CurveRule
 from planner.nurbs import NurbsCurve
 
-#: Gauss-Legendre nodes per table interval and per partial-interval quadrature.
-_GAUSS_NODES = 7
-#: Relative agreement required between a group's coarse value and the sum over its intervals.
-_RTOL = 1e-10
-#: Absolute floor of that agreement, relative to the curve length; ends refinement at cusps.
+#: Chebyshev nodes (first kind) per table interval, the degree of the speed interpolant + 1.
+CHEBYSHEV_NODES = 16
+#: Estimated error of an interval's length allowed, relative to that length.
+_RTOL = 1e-11
+#: Absolute floor of that error, relative to the curve length; ends refinement at cusps.
 _ATOL_PER_LENGTH = 1e-14
-#: Refinement levels after which a group is accepted regardless (each level halves it at least).
+#: Halvings after which an interval is accepted regardless.
 _MAX_LEVELS = 60
+#: Curve evaluations per call while the table is built (bounds its memory on long curves).
+_EVALUATION_CHUNK = 1 << 16
 #: Target |s(u) - s| of u_of_s, mm.
 _S_TOL_MM = 1e-10
 #: Largest |s(u) - s| at which a Newton step may be accepted without checking it, mm.
@@ -53,38 +52,55 @@ _SETTLE_RESIDUAL_MM = 1e-5
 #: Newton/bisection iterations of u_of_s before it stops at the best bracket.
 _MAX_ITERATIONS = 100
 
-_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(_GAUSS_NODES)
+_ANGLES = np.pi * (np.arange(CHEBYSHEV_NODES) + 0.5) / CHEBYSHEV_NODES
+#: Interpolation nodes on [-1, 1], strictly inside: a knot's one-sided speeds never mix.
+_NODES = np.cos(_ANGLES)
+#: Chebyshev coefficients from the values at _NODES: a = values @ _TO_COEFFICIENTS.
+_TO_COEFFICIENTS = (2.0 / CHEBYSHEV_NODES) * np.cos(np.outer(_ANGLES, np.arange(CHEBYSHEV_NODES)))
+_TO_COEFFICIENTS[:, 0] *= 0.5
+_EVEN = np.arange(0, CHEBYSHEV_NODES, 2)
+#: Integral of T_k over [-1, 1] for even k (zero for odd k).
+_EVEN_INTEGRALS = 2.0 / (1.0 - _EVEN**2)
+_DEGREES = np.arange(CHEBYSHEV_NODES + 1)
+_SIGNS = (-1.0) ** np.arange(CHEBYSHEV_NODES)
+_SQUARES = np.arange(CHEBYSHEV_NODES) ** 2.0
 
 
 class ArcLengthTable:
-    """Arc length s(u) of a curve, accurate to ~1e-9 relative, built once per curve.
+    """Arc length s(u) of a curve, accurate to ~1e-11 relative, built once per curve.
 
     :param curve: the curve.
-    :param samples_per_span: table intervals each non-empty knot span starts with (>= 2, the
-        check compares a group with its intervals); where |C'| needs it, refinement cuts every
-        interval of a rejected group into as many again.
-    :raises CurveError: if ``samples_per_span`` is not an integer >= 2.
     """
 
-    def __init__(self, curve: NurbsCurve, *, samples_per_span: int = 2) -> None:
-        if (
-            isinstance(samples_per_span, bool)
-            or not isinstance(samples_per_span, Integral)
-            or samples_per_span < 2
-        ):
-            raise CurveError(
-                "samples_per_span",
-                f"got {samples_per_span!r}, must be an integer >= 2",
-                rule=CurveRule.PARAMETER,
-            )
+    def __init__(self, curve: NurbsCurve) -> None:
         self.curve = curve
-        self._u_grid, self._s_grid = _build_table(curve, int(samples_per_span))
+        lo, hi, speed = _build_table(curve)
+        half = 0.5 * (hi - lo)
+        # |C'| = sum a_k T_k(x) with u = lo + (x + 1) half; its antiderivative from x = -1,
+        # times half, is the arc length from the interval's start in mm.
+        self._speed = speed
+        self._length = chebyshev.chebint(speed, lbnd=-1.0, axis=1) * half[:, None]
+        self._lo, self._hi, self._half = lo, hi, half
+        self._u_grid = np.append(lo, hi[-1])
+        self._s_grid = np.concatenate([[0.0], np.cumsum(self._length.sum(axis=1))])
+        for array in (self._u_grid, self._s_grid):
+            array.flags.writeable = False
         self.length_mm = float(self._s_grid[-1])
-        self._du_ds, self._d2u_ds2 = _inverse_slopes(curve, self._u_grid)
+        # |C'| and d|C'|/du at each interval's start and end (T_k(+-1) = (+-1)^k,
+        # T_k'(+-1) = (+-1)^(k+1) k^2), for the Hermite guess of u(s).
+        ends = np.stack([speed @ _SIGNS, speed.sum(axis=1)], axis=1)
+        slopes = np.stack([-(speed @ (_SIGNS * _SQUARES)), speed @ _SQUARES], axis=1)
+        slopes /= half[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self._du_ds = 1.0 / ends
+            self._d2u_ds2 = -slopes / ends**3
+        # |d2s/dx2| <= half sum k^2 |a_k| (|T_k'| <= k^2): bounds the error of a Newton step.
+        self._curvature_bound = half * (np.abs(speed) @ _SQUARES)
 
     @property
     def u_grid(self) -> np.ndarray:
-        """Table parameters, ascending, from the first to the last knot (read-only)."""
+        """Parameters of the table's interval ends, ascending, from the first to the last knot
+        (every breakpoint among them; read-only)."""
         return self._u_grid
 
     @property
@@ -101,7 +117,11 @@ class ArcLengthTable:
         """
         params = _checked(u, "u", *self.curve.domain)
         i = np.minimum(np.searchsorted(self._u_grid, params, side="right") - 1, self._last)
-        s = self._s_grid[i] + _gauss(self.curve, self._u_grid[i], params)
+        x = self._local(i, params)
+        s = self._s_grid[i] + np.einsum(
+            "ij,ij->i", _chebyshev_t(x, CHEBYSHEV_NODES + 1), self._length[i]
+        )
+        s[params == self._u_grid[i]] = self._s_grid[i][params == self._u_grid[i]]
         s[params == self._u_grid[-1]] = self.length_mm
         return s
 
@@ -118,8 +138,6 @@ class ArcLengthTable:
         """
         target = _checked(s, "s", 0.0, self.length_mm)
         i = np.minimum(np.searchsorted(self._s_grid, target, side="right") - 1, self._last)
-        lo, hi = self._u_grid[i].copy(), self._u_grid[i + 1].copy()
-        s_lo = self._s_grid[i]
         u = self._hermite_guess(i, target)
         if u_guess is not None:
             guess = np.asarray(u_guess, dtype=np.float64).ravel()
@@ -129,80 +147,93 @@ class ArcLengthTable:
                     f"got {guess.size} values for {target.size} arc lengths, must match",
                     rule=CurveRule.PARAMETER,
                 )
-            inside = (guess >= lo) & (guess <= hi)
+            inside = (guess >= self._lo[i]) & (guess <= self._hi[i])
             u[inside] = guess[inside]
+        x = self._newton(i, self._local(i, u), target - self._s_grid[i])
+        # Exact at both ends of the interval.
+        u = np.where(
+            x <= 0.0,
+            self._lo[i] + (x + 1.0) * self._half[i],
+            self._hi[i] - (1.0 - x) * self._half[i],
+        )
         u[target == self.length_mm] = self._u_grid[-1]
-        self._newton(u, lo, hi, s_lo, target, i)
         return u
 
-    def _hermite_guess(self, i: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """u(s) on table interval i by quintic Hermite interpolation of u, du/ds and d2u/ds2.
+    @property
+    def _last(self) -> int:
+        return len(self._lo) - 1
 
-        Accurate enough that one Newton step usually settles; where the slopes are not finite
-        (C' = 0 at a node) or the result leaves the interval, linear interpolation instead.
+    def _local(self, i: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x in [-1, 1] of u on interval i, exactly -1 and 1 at its ends."""
+        lo, hi = self._lo[i], self._hi[i]
+        return np.clip(((u - lo) - (hi - u)) / (hi - lo), -1.0, 1.0)
+
+    def _hermite_guess(self, i: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """u(s) on interval i by quintic Hermite interpolation of u, du/ds and d2u/ds2.
+
+        Where the slopes are not finite (C' = 0 at an end) or the result leaves the interval,
+        linear interpolation instead.
         """
-        u0, u1 = self._u_grid[i], self._u_grid[i + 1]
+        u0, u1 = self._lo[i], self._hi[i]
         s0, s1 = self._s_grid[i], self._s_grid[i + 1]
+        v0, v1 = self._du_ds[i, 0], self._du_ds[i, 1]
+        w0, w1 = self._d2u_ds2[i, 0], self._d2u_ds2[i, 1]
         h = s1 - s0
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             t = np.clip((target - s0) / h, 0.0, 1.0)
             t2 = t * t
             t3 = t2 * t
-            right = t3 * (10.0 - 15.0 * t + 6.0 * t2)
             u = (
                 u0
-                + (u1 - u0) * right
-                + h * self._du_ds[i] * (t - t3 * (6.0 - 8.0 * t + 3.0 * t2))
-                - h * self._du_ds[i + 1] * t3 * (4.0 - 7.0 * t + 3.0 * t2)
-                + h * h * self._d2u_ds2[i] * 0.5 * t2 * (1.0 - t) ** 3
-                + h * h * self._d2u_ds2[i + 1] * 0.5 * t3 * (1.0 - t) ** 2
+                + (u1 - u0) * t3 * (10.0 - 15.0 * t + 6.0 * t2)
+                + h * v0 * (t - t3 * (6.0 - 8.0 * t + 3.0 * t2))
+                - h * v1 * t3 * (4.0 - 7.0 * t + 3.0 * t2)
+                + h * h * w0 * 0.5 * t2 * (1.0 - t) ** 3
+                + h * h * w1 * 0.5 * t3 * (1.0 - t) ** 2
             )
             linear = u0 + (u1 - u0) * t
         good = np.isfinite(u) & (u >= u0) & (u <= u1)
         return np.where(good, u, np.where(np.isfinite(linear), linear, u0))
 
-    @property
-    def _last(self) -> int:
-        return len(self._u_grid) - 2
-
-    def _newton(
-        self,
-        u: np.ndarray,
-        lo: np.ndarray,
-        hi: np.ndarray,
-        s_lo: np.ndarray,
-        target: np.ndarray,
-        interval: np.ndarray,
-    ) -> None:
-        """Solve s_lo + integral from u_grid[interval] to u of |C'| = target in place."""
-        active = np.flatnonzero(target < self.length_mm)
-        start = self._u_grid[interval]
+    def _newton(self, i: np.ndarray, x: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """Solve length_i(x) = offset for x in [-1, 1], from the guess x."""
+        length = self._length[i]
+        slope = self._speed[i] * self._half[i][:, None]  # d length / dx
+        bound = self._curvature_bound[i]
+        lo, hi = np.full(x.size, -1.0), np.full(x.size, 1.0)
+        active = np.arange(x.size)
         for _ in range(_MAX_ITERATIONS):
             if active.size == 0:
-                return
-            ua = u[active]
-            partial, ds_du, d2s_du2 = _integral_and_slope(self.curve, start[active], ua)
-            residual = s_lo[active] + partial - target[active]
+                break
+            xa = x[active]
+            t = _chebyshev_t(xa, CHEBYSHEV_NODES + 1)
+            residual = np.einsum("ij,ij->i", t, length[active]) - offset[active]
+            ds_dx = np.einsum("ij,ij->i", t[:, :-1], slope[active])
             below = residual < 0.0
-            lo[active[below]] = ua[below]
-            hi[active[~below]] = ua[~below]
-            done = np.abs(residual) <= _S_TOL_MM
+            lo[active[below]] = xa[below]
+            hi[active[~below]] = xa[~below]
             la, ha = lo[active], hi[active]
-            done |= ha - la <= 4.0 * np.spacing(np.maximum(np.abs(la), np.abs(ha)))
+            done = (np.abs(residual) <= _S_TOL_MM) | (ha - la <= 4.0 * np.spacing(1.0))
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                du = residual / ds_du
-                # Newton leaves an error of about s''/2 du^2: far below the tolerance, the step
-                # needs no further evaluation to be trusted.
+                dx = residual / ds_dx
+                # Newton leaves an error of at most bound/2 dx^2: far below the tolerance, the
+                # step needs no further evaluation to be trusted.
                 settled = (np.abs(residual) <= _SETTLE_RESIDUAL_MM) & (
-                    0.5 * np.abs(d2s_du2) * du * du <= 0.25 * _S_TOL_MM
+                    0.5 * bound[active] * dx * dx <= 0.25 * _S_TOL_MM
                 )
-            step = ua - du
+            step = xa - dx
             bisect = ~((step > la) & (step < ha))
             step[bisect] = 0.5 * (la[bisect] + ha[bisect])
             settled &= ~bisect
             moving = ~done
-            u[active[moving]] = step[moving]
+            x[active[moving]] = step[moving]
             active = active[moving & ~settled]
+        return x
+
+
+def _chebyshev_t(x: np.ndarray, terms: int) -> np.ndarray:
+    """T_k(x) for k < terms, one row per x in [-1, 1]."""
+    return np.cos(np.outer(np.arccos(x), _DEGREES[:terms]))
 
 
 def _checked(values: ArrayLike, name: str, low: float, high: float) -> np.ndarray:
@@ -225,66 +256,43 @@ def _checked(values: ArrayLike, name: str, low: float, high: float) -> np.ndarra
     return array
 
 
-def _gauss(curve: NurbsCurve, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Gauss-Legendre integral of |C'| over each [a, b] (elementwise arrays)."""
-    half = 0.5 * (b - a)
-    nodes = (a + half)[:, None] + half[:, None] * _NODES
-    speed = np.linalg.norm(curve.evaluate(nodes, order=1)[1], axis=1)
-    return half * (speed.reshape(nodes.shape) @ _WEIGHTS)
+def _speeds(curve: NurbsCurve, u: np.ndarray) -> np.ndarray:
+    """|C'(u)| for an array of parameters, evaluated a chunk at a time."""
+    flat = u.ravel()
+    out = np.empty(flat.size)
+    for start in range(0, flat.size, _EVALUATION_CHUNK):
+        chunk = flat[start : start + _EVALUATION_CHUNK]
+        out[start : start + chunk.size] = np.linalg.norm(curve.evaluate(chunk, order=1)[1], axis=1)
+    return out.reshape(u.shape)
 
 
-def _integral_and_slope(
-    curve: NurbsCurve, a: np.ndarray, b: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Integral of |C'| over each [a, b], ds/du = |C'(b)| and d2s/du2 = C'.C''/|C'| at b."""
-    integral = _gauss(curve, a, b)
-    _, d1, d2 = curve.evaluate(b, order=2)
-    ds_du = np.linalg.norm(d1, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2s_du2 = np.einsum("ij,ij->i", d1, d2) / ds_du
-    return integral, ds_du, d2s_du2
-
-
-def _inverse_slopes(curve: NurbsCurve, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """du/ds = 1/|C'| and d2u/ds2 = -(C'.C'')/|C'|^4 at u (inf or nan where C' = 0)."""
-    _, d1, d2 = curve.evaluate(u, order=2)
-    speed2 = np.sum(d1 * d1, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return 1.0 / np.sqrt(speed2), -np.sum(d1 * d2, axis=1) / (speed2 * speed2)
-
-
-def _build_table(curve: NurbsCurve, parts: int) -> tuple[np.ndarray, np.ndarray]:
-    """Adaptive Gauss-Legendre table: returns read-only (u_grid, s_grid)."""
+def _build_table(curve: NurbsCurve) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intervals (lo, hi), ascending, and the Chebyshev coefficients of |C'| on each."""
     breaks = curve.breakpoints
-    group_a, group_b = breaks[:-1], breaks[1:]
-    group_value = _gauss(curve, group_a, group_b)
-    atol = _ATOL_PER_LENGTH * float(group_value.sum())
-    fractions = np.arange(parts) / parts
-    accepted_a: list[np.ndarray] = []
-    accepted_value: list[np.ndarray] = []
+    lo, hi = breaks[:-1], breaks[1:]
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    floor = None
     for level in range(_MAX_LEVELS + 1):
-        width = (group_b - group_a)[:, None]
-        edges = np.concatenate([group_a[:, None] + width * fractions, group_b[:, None]], axis=1)
-        left, right = edges[:, :-1].ravel(), edges[:, 1:].ravel()
-        value = _gauss(curve, left, right).reshape(-1, parts)
-        refined = value.sum(axis=1)
-        good = np.abs(refined - group_value) <= _RTOL * refined + atol
+        half = 0.5 * (hi - lo)
+        speed = _speeds(curve, (0.5 * (lo + hi))[:, None] + half[:, None] * _NODES)
+        coefficients = speed @ _TO_COEFFICIENTS
+        length = half * (coefficients[:, _EVEN] @ _EVEN_INTEGRALS)
+        if floor is None:
+            floor = _ATOL_PER_LENGTH * float(length.sum())
+        # The last coefficients stand for the tail the interpolant leaves out; a term's
+        # antiderivative stays within 2 half over the interval.
+        error = 2.0 * half * np.abs(coefficients[:, -2:]).sum(axis=1)
+        good = error <= _RTOL * length + floor
         # Intervals a few ulp wide cannot be cut any further.
-        good |= width[:, 0] <= 64.0 * np.spacing(np.maximum(np.abs(group_a), np.abs(group_b)))
+        good |= hi - lo <= 64.0 * np.spacing(np.maximum(np.abs(lo), np.abs(hi)))
         if level == _MAX_LEVELS:
             good[:] = True
-        accepted_a.append(left.reshape(-1, parts)[good].ravel())
-        accepted_value.append(value[good].ravel())
+        parts.append((lo[good], hi[good], coefficients[good]))
         if good.all():
             break
-        group_a = left.reshape(-1, parts)[~good].ravel()
-        group_b = right.reshape(-1, parts)[~good].ravel()
-        group_value = value[~good].ravel()
-    starts = np.concatenate(accepted_a)
-    values = np.concatenate(accepted_value)
-    order = np.argsort(starts, kind="stable")
-    u_grid = np.append(starts[order], breaks[-1])
-    s_grid = np.concatenate([[0.0], np.cumsum(values[order])])
-    u_grid.flags.writeable = False
-    s_grid.flags.writeable = False
-    return u_grid, s_grid
+        lo, hi = lo[~good], hi[~good]
+        mid = 0.5 * (lo + hi)
+        lo, hi = np.concatenate([lo, mid]), np.concatenate([mid, hi])
+    lo, hi, coefficients = (np.concatenate(column) for column in zip(*parts, strict=True))
+    order = np.argsort(lo, kind="stable")
+    return lo[order], hi[order], coefficients[order]

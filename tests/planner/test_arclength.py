@@ -80,12 +80,12 @@ def test_ends_map_exactly() -> None:
     assert table.s_grid[-1] == table.length_mm
 
 
-def test_grid_is_read_only_ascending_and_consistent_with_s_of_u() -> None:
-    table = ArcLengthTable(load_paper_curve(), samples_per_span=8)
+def test_grid_is_read_only_ascending_holds_every_breakpoint_and_matches_s_of_u() -> None:
+    curve = load_paper_curve()
+    table = ArcLengthTable(curve)
     assert (np.diff(table.u_grid) > 0).all()
     assert (np.diff(table.s_grid) > 0).all()
-    # Every non-empty knot span holds at least samples_per_span intervals.
-    assert table.u_grid.size - 1 >= 4 * 8
+    assert np.isin(curve.breakpoints, table.u_grid).all()
     np.testing.assert_allclose(table.s_of_u(table.u_grid), table.s_grid, rtol=0, atol=1e-12)
     for array in (table.u_grid, table.s_grid):
         with pytest.raises(ValueError):
@@ -153,15 +153,6 @@ def test_huge_curve_of_100_000_spans_builds_quickly() -> None:
     assert chord_mm < table.length_mm <= polygon_mm
     u = np.linspace(0.0, 1.0, 1001)
     assert (np.diff(table.s_of_u(u)) > 0).all()
-
-
-@pytest.mark.parametrize("samples", [1, 0, 2.5, True])
-def test_samples_per_span_must_be_an_integer_of_at_least_two(samples: object) -> None:
-    with pytest.raises(CurveError) as caught:
-        ArcLengthTable(load_paper_curve(), samples_per_span=samples)  # type: ignore[arg-type]
-    assert str(caught.value) == (
-        f"curve: samples_per_span: got {samples!r}, must be an integer >= 2"
-    )
 
 
 def test_arguments_outside_their_range_are_rejected() -> None:
