@@ -70,8 +70,6 @@ GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN = 8, 128
 #: Relative change of the feed limit across a grid interval above which it is halved, and the
 #: most halvings.
 TIGHT_CHANGE, TIGHT_LEVELS = 0.05, 8
-#: Every this many envelope samples, the arc length is computed exactly (the rest interpolates).
-ANCHOR_EVERY = 16
 #: Knot spans per envelope chunk, and chunks kept in the cache.
 CHUNK_SPANS, CACHE_CHUNKS = 256, 16
 #: Feed limits below this are treated as a stop, mm/s.
@@ -181,13 +179,14 @@ class FeedEnvelope:
         offsets = np.repeat(np.cumsum(counts) - counts, counts)
         frac = (np.arange(counts.sum()) - offsets) / np.repeat(counts, counts)
         u = np.append(breaks[span] + (breaks[span + 1] - breaks[span]) * frac, breaks[b])
-        kappa, v, d1, d2 = self._limit(u)
         # Curvature may jump at a knot (degree 2, repeated knots): keep the lower side's limit.
         # A tangent that turns at a knot is a sharp corner: the feed must come to 0 there.
         knot_rows = np.cumsum(counts)[:-1]
+        below = np.nextafter(u[knot_rows], -np.inf)
+        kappa, v, d1, d2 = self._limit(np.concatenate([u, below]))
+        k_left, v_left, d_left = kappa[u.size :], v[u.size :], d1[u.size :]
+        kappa, v, d1, d2 = kappa[: u.size], v[: u.size], d1[: u.size], d2[: u.size]
         if knot_rows.size:
-            below = np.nextafter(u[knot_rows], -np.inf)
-            k_left, v_left, d_left, _ = self._limit(below)
             v[knot_rows] = np.minimum(v[knot_rows], v_left)
             kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
             d_right = d1[knot_rows]
@@ -219,7 +218,7 @@ class FeedEnvelope:
         extras.append(self._sampled(self._corner_grid(samples[0], samples[1])))
         extras.append(self._tight_midpoints(u, v))
         u, v, d1, d2 = self._merged(samples, extras)
-        s = self._arc_lengths(u, v, d1, d2)
+        s = np.maximum.accumulate(self._arc.s_of_u(u))
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
         v = np.where(v < MIN_FEED_MM_S, 0.0, v)
@@ -231,6 +230,9 @@ class FeedEnvelope:
 
     def _limit(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """kappa, v_limit, C' and C'' at u."""
+        if u.size == 0:
+            d = np.empty((0, self._curve.dimension))
+            return np.empty(0), np.empty(0), d, d
         _, d1, d2 = self._curve.evaluate(u, order=2)
         kappa, v = geometric_feed_limit(d1, d2, self._planning_limits, self._T)
         return kappa, v, d1, d2
@@ -279,41 +281,6 @@ class FeedEnvelope:
         mid = 0.5 * (lo + hi)
         reverses = dots[turn] < 0.0
         return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
-
-    def _arc_lengths(self, u: np.ndarray, v: np.ndarray, d1: np.ndarray, d2: np.ndarray):
-        """Arc length at sorted samples u, mostly from the derivatives in hand.
-
-        Exact (:meth:`ArcLengthTable.s_of_u`) at every ``ANCHOR_EVERY``-th sample and at every
-        stop (v_limit 0: corners, cusps), so that the plan stops exactly there; in between, a
-        corrected trapezoid rule (exact for cubic |C'|, with ds/du = |C'| and d2s/du2 =
-        C'.C''/|C'|) scaled onto the anchors. This costs a fraction of a curve evaluation per
-        sample; the setpoints themselves take their parameters from the arc-length table.
-        """
-        speed = np.linalg.norm(d1, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            slope = np.sum(d1 * d2, axis=1) / speed
-        # Where C' = 0 (a cusp) |C'| has a kink: |C''| leaving it, -|C''| arriving.
-        kink = np.linalg.norm(d2, axis=1)
-        leaving = np.where(speed > 0.0, slope, kink)
-        arriving = np.where(speed > 0.0, slope, -kink)
-        h = np.diff(u)
-        pieces = 0.5 * h * (speed[:-1] + speed[1:]) + h * h / 12.0 * (leaving[:-1] - arriving[1:])
-        cumulative = np.concatenate([[0.0], np.cumsum(np.maximum(pieces, 0.0))])
-        n = len(u)
-        anchors = np.union1d(
-            np.append(np.arange(0, n, ANCHOR_EVERY), n - 1), np.flatnonzero(v == 0)
-        )
-        s_anchor = self._arc.s_of_u(u[anchors])
-        # anchors holds the first and the last sample, so every sample has a piece.
-        piece = np.minimum(
-            np.searchsorted(anchors, np.arange(n), side="right") - 1, len(anchors) - 2
-        )
-        c0, c1 = cumulative[anchors[:-1]], cumulative[anchors[1:]]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            scale = np.where(c1 > c0, np.diff(s_anchor) / (c1 - c0), 0.0)
-        s = s_anchor[piece] + (cumulative - c0[piece]) * scale[piece]
-        s[anchors] = s_anchor
-        return np.maximum.accumulate(s)
 
     def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, ...]:
         """Samples (u, v_limit, C', C'') added where the grid is coarse for the feed limit.
@@ -395,32 +362,33 @@ class FeedEnvelope:
     def _reachable(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
         """inf over x >= 0 of max(f(s_i + x), x / T) for increasing s, up to the step cap."""
         n, T = len(s), self._T
-        out = np.full(n, np.inf)
         masked = np.where(v > 0.0, v, np.inf)
-        for k in range(1, n):
-            # Interval [s_{i+k-1}, s_{i+k}] seen from s_i, while its start is within reach.
-            i = np.arange(n - k)
-            j = i + k - 1
-            start_gap = s[j] - s[i]
-            near = start_gap <= self._step_cap_mm
-            if not near.any():
-                break
-            i, j, start_gap = i[near], j[near], start_gap[near]
-            end_gap = s[j + 1] - s[i]
-            out[i] = np.minimum(out[i], np.maximum(masked[j + 1], end_gap / T))
-            h = s[j + 1] - s[j]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                slope = (v[j + 1] - v[j]) / h
-                x = (v[j] + slope * (s[i] - s[j])) / (1.0 / T - slope)  # f(s_i + x) = x / T
-            crossing = (
-                (v[j] > 0.0)
-                & (v[j + 1] > 0.0)
-                & (h > 0.0)
-                & (slope < 1.0 / T)
-                & (x >= start_gap)
-                & (x <= end_gap)
-            )
-            out[i[crossing]] = np.minimum(out[i[crossing]], x[crossing] / T)
+        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within reach.
+        reach = np.searchsorted(s, s + self._step_cap_mm, side="right")
+        count = np.maximum(np.minimum(reach, n - 1) - np.arange(n), 0)
+        first = np.cumsum(count) - count
+        i = np.repeat(np.arange(n), count)
+        j = i + np.arange(i.size) - np.repeat(first, count)
+        start_gap = s[j] - s[i]
+        end_gap = s[j + 1] - s[i]
+        value = np.maximum(masked[j + 1], end_gap / T)
+        h = s[j + 1] - s[j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = (v[j + 1] - v[j]) / h
+            x = (v[j] + slope * (s[i] - s[j])) / (1.0 / T - slope)  # f(s_i + x) = x / T
+        crossing = (
+            (v[j] > 0.0)
+            & (v[j + 1] > 0.0)
+            & (h > 0.0)
+            & (slope < 1.0 / T)
+            & (x >= start_gap)
+            & (x <= end_gap)
+        )
+        value = np.where(crossing, np.minimum(value, x / T), value)
+        out = np.full(n, np.inf)
+        paired = count > 0
+        if paired.any():
+            out[paired] = np.minimum.reduceat(value, first[paired])
         return out
 
 
