@@ -360,11 +360,14 @@ class FeedEnvelope:
         return np.where(v > 0.0, np.minimum(v, np.minimum(ahead, behind)), 0.0)
 
     def _reachable(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """inf over x >= 0 of max(f(s_i + x), x / T) for increasing s, up to the step cap."""
+        """inf over x >= 0 of max(f(s_i + x), x / T) for increasing s, where it is below the
+        sample's own limit f(s_i) and the override cap."""
         n, T = len(s), self._T
         masked = np.where(v > 0.0, v, np.inf)
-        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within reach.
-        reach = np.searchsorted(s, s + self._step_cap_mm, side="right")
+        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within a step
+        # at the sample's own limit (a longer step exceeds that limit whatever it meets).
+        step_mm = T * np.minimum(v, self._vcap_mm_s)
+        reach = np.searchsorted(s, s + step_mm, side="right")
         count = np.maximum(np.minimum(reach, n - 1) - np.arange(n), 0)
         first = np.cumsum(count) - count
         i = np.repeat(np.arange(n), count)

@@ -124,7 +124,7 @@ def stream_setpoints(
         raise ValueError(f"start: got {state!r}, feed must be >= 0 and both finite")
     interp = Interpolator(path.curve, path.arc, update, state.s_mm)
     rows = (
-        _planned_rows(path, limits, state, stop=stop, fresh=fresh)
+        _planned_rows(path, limits, state, stop=stop, fresh=fresh, min_rows=block_periods)
         if lookahead
         else _adaptive_rows(path, limits, state, stop=stop, fresh=fresh)
     )
@@ -140,9 +140,10 @@ _Rows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def _planned_rows(
-    path: Path, limits: Limits, state: MotionState, *, stop: bool, fresh: bool
+    path: Path, limits: Limits, state: MotionState, *, stop: bool, fresh: bool, min_rows: int
 ) -> Iterator[tuple[_Rows, bool]]:
-    """(t, s, v, a, j) rows of the look-ahead plan, and whether the batch ends the motion."""
+    """(t, s, v, a, j) rows of the look-ahead plan, at least ``min_rows`` per batch until the
+    last, and whether the batch ends the motion."""
     T = path.period_s
     lim = PlanLimits(
         vmax_mm_s=limits.vmax_mm_s,
@@ -160,21 +161,29 @@ def _planned_rows(
         stop=stop,
     )
     t, s, v, a = 0.0, state.s_mm, state.v_mm_s, state.a_mm_s2
-    k_next = 0 if fresh else 1
+    k_next = k_end = 0 if fresh else 1
+    # Segments are sampled together once they hold min_rows rows: one vectorised sampling
+    # instead of one per segment.
+    train = PhaseTrain(t, s, v, a)
     for segment in segments:
-        train = PhaseTrain(t, s, v, a)
+        train.restart(t, s, v, a)  # each segment starts from its exact planned state
         train.extend(list(segment.phases))
         t_end = train.t_s
         if segment.v_end_mm_s == 0.0:
             # At rest inside the motion (a sharp corner): wait for the next period boundary.
             t_end = math.ceil(t_end / T - _TIME_EPS) * T
             train.extend([Phase(t_end - train.t_s, 0.0)])
-        k_end = math.ceil(t_end / T - _TIME_EPS)  # rows with k T < t_end
-        if k_end > k_next:
+        k_end = max(k_end, math.ceil(t_end / T - _TIME_EPS))  # rows with k T < t_end
+        t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, 0.0
+        if k_end - k_next >= min_rows:
             times = np.arange(k_next, k_end) * T
             yield (times, *train.sample(times)), False
             k_next = k_end
-        t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, 0.0
+            train = PhaseTrain(t, s, v, a)
+    if k_end > k_next:
+        times = np.arange(k_next, k_end) * T
+        yield (times, *train.sample(times)), False
+        k_next = k_end
     k_last = max(k_next, math.ceil(t / T - _TIME_EPS))
     final = (np.array([k_last * T]), np.array([s]), np.zeros(1), np.zeros(1), np.zeros(1))
     yield final, True
