@@ -7,9 +7,10 @@ s(u) = s_target with the exact arc length, s(u) = integral of |C'(t)| dt from th
 The table is built once per curve. The speed |C'| is smooth inside a knot span; on each table
 interval it is replaced by its Chebyshev interpolant of ``CHEBYSHEV_NODES`` nodes, and an
 interval whose last two coefficients say the interpolant is not accurate to ``_RTOL`` of the
-interval's length (plus a tiny absolute floor) is halved, starting from the knot spans. All of
-it is vectorised over intervals, one numpy pass per halving. The interpolant's antiderivative,
-a Chebyshev series too, is s(u) on its interval: s_of_u evaluates series and no curve.
+interval's length (plus a tiny absolute floor) is halved, starting from the knot spans (cut
+into equal parts on curves of fewer than ``MIN_INTERVALS`` spans). All of it is vectorised
+over intervals, one numpy pass per halving. The interpolant's antiderivative, a Chebyshev
+series too, is s(u) on its interval: s_of_u evaluates series and no curve.
 
 u(s) starts from quintic Hermite interpolation of u, du/ds and d2u/ds2 at the ends of the
 interval that holds s (or from a caller's guess inside that interval) and takes Newton steps on
@@ -36,6 +37,10 @@ from planner.nurbs import NurbsCurve
 
 #: Chebyshev nodes (first kind) per table interval, the degree of the speed interpolant + 1.
 CHEBYSHEV_NODES = 16
+#: Table intervals a curve starts with, at least (each knot span cut into equal parts): on a
+#: curve of few spans, extra intervals cost less than extra halving passes, and give u(s) a
+#: closer first guess.
+MIN_INTERVALS = 16
 #: Estimated error of an interval's length allowed, relative to that length.
 _RTOL = 1e-11
 #: Absolute floor of that error, relative to the curve length; ends refinement at cusps.
@@ -290,7 +295,9 @@ def _speeds(curve: NurbsCurve, u: np.ndarray) -> np.ndarray:
 def _build_table(curve: NurbsCurve) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Intervals (lo, hi), ascending, and the Chebyshev coefficients of |C'| on each."""
     breaks = curve.breakpoints
-    lo, hi = breaks[:-1], breaks[1:]
+    split = -(-MIN_INTERVALS // (len(breaks) - 1))
+    edges = np.linspace(breaks[:-1], breaks[1:], split + 1, axis=1)
+    lo, hi = edges[:, :-1].ravel(), edges[:, 1:].ravel()
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     floor = None
     for level in range(_MAX_LEVELS + 1):
