@@ -4,11 +4,14 @@ The tool path of the paper (Wang, Zhao, Lu, Liu, China Mechanical Engineering 23
 299-304), eq. (1): C(u) = (x(u), y(u), z(u)), a rational B-spline of degree p over a clamped knot
 vector, here on the general domain [first knot, last knot] rather than only [0, 1].
 
-Evaluation follows The NURBS Book (Piegl and Tiller, 2nd ed.): the knot span by binary search
-(A2.1), the B-spline basis functions and their derivatives as in A2.3 (with eq. 2.9),
-vectorised over an array of parameters (loops run only over degree and derivative order), then
-A4.2 for the derivatives of the rational curve from those of its homogeneous form
-C^w(u) = sum N_i,p(u) (w_i P_i, w_i).
+Evaluation follows The NURBS Book (Piegl and Tiller, 2nd ed.). Once per curve, the homogeneous
+form C^w(u) = sum N_i,p(u) (w_i P_i, w_i) on each non-empty knot span is turned into a
+polynomial in the span's local parameter t in [0, 1], its Taylor coefficients from the
+B-spline basis functions and their derivatives at the span's start (A2.3, with eq. 2.9,
+vectorised over spans). Evaluation finds the span by binary search (as A2.1, over the
+breakpoints), evaluates the polynomial and its derivatives by Horner's rule, vectorised over
+an array of parameters (loops run only over degree and derivative order), then applies A4.2 for
+the derivatives of the rational curve from those of its homogeneous form.
 
 Units: control points and every derived point in mm; u is dimensionless; the k-th derivative
 with respect to u is in mm per unit of u to the k; curvature in 1/mm.
@@ -41,6 +44,9 @@ from planner.errors import CurveError, CurveRule
 #: Highest derivative order that :meth:`NurbsCurve.evaluate` computes.
 MAX_ORDER = 3
 
+#: Spans converted to polynomial form per pass while a curve is built.
+_TAYLOR_CHUNK = 1 << 15
+
 _KEYS_REQUIRED = ("degree", "control_points", "knots")
 _KEYS_OPTIONAL = ("weights",)
 
@@ -63,8 +69,11 @@ class NurbsCurve:
     control_points: np.ndarray = field(repr=False)
     weights: np.ndarray = field(repr=False)
     knots: np.ndarray = field(repr=False)
-    _homogeneous: np.ndarray = field(init=False, repr=False)
     _rational: bool = field(init=False, repr=False)
+    _breaks: np.ndarray = field(init=False, repr=False)
+    _inverse_widths: np.ndarray = field(init=False, repr=False)
+    _taylor: np.ndarray = field(init=False, repr=False)
+    _falling: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         degree = _validated_degree(self.degree)
@@ -77,13 +86,24 @@ class NurbsCurve:
         homogeneous = (
             np.hstack([points * weights[:, None], weights[:, None]]) if rational else points
         )
+        breaks, taylor = _taylor_coefficients(knots, degree, homogeneous)
         for name, value in (
             ("_rational", rational),
+            ("_breaks", breaks),
+            ("_inverse_widths", 1.0 / np.diff(breaks)),
+            ("_taylor", taylor),
+            # _falling[k, i] = i! / (i - k)!, the factor of t^(i-k) in the k-th derivative.
+            (
+                "_falling",
+                np.array(
+                    [[math.perm(i, k) for i in range(degree + 1)] for k in range(MAX_ORDER + 1)],
+                    dtype=float,
+                ),
+            ),
             ("degree", degree),
             ("control_points", points),
             ("weights", weights),
             ("knots", knots),
-            ("_homogeneous", homogeneous),
         ):
             if isinstance(value, np.ndarray):
                 value.flags.writeable = False
@@ -178,8 +198,8 @@ class NurbsCurve:
 
     @property
     def breakpoints(self) -> np.ndarray:
-        """Distinct knot values, ascending: the ends of the non-empty knot spans."""
-        return np.unique(self.knots)
+        """Distinct knot values, ascending: the ends of the non-empty knot spans (read-only)."""
+        return self._breaks
 
     @property
     def start_point(self) -> np.ndarray:
@@ -214,14 +234,21 @@ class NurbsCurve:
             )
         params = self._checked_parameters(u)
         p = self.degree
-        n = len(self.control_points)
-        # Clamped knots put every u >= first knot in span >= p; the last knot belongs to the
-        # last non-empty span, n - 1.
-        span = np.minimum(np.searchsorted(self.knots, params, side="right") - 1, n - 1)
-        basis = _basis_derivatives(self.knots, p, span, params, order)
-        rows = self._homogeneous[span + np.arange(-p, 1)[:, None]]
-        # Derivatives of the homogeneous curve: A^(k) in the first columns, w^(k) in the last.
-        homogeneous = np.einsum("kim,imc->kmc", basis, rows)
+        breaks = self._breaks
+        # A knot value belongs to the span it starts; the last knot to the last span.
+        span = np.minimum(np.searchsorted(breaks, params, side="right") - 1, len(breaks) - 2)
+        inverse_width = self._inverse_widths[span]
+        t = ((params - breaks[span]) * inverse_width)[:, None]
+        coefficients = [column[span] for column in self._taylor]
+        # Derivatives of the homogeneous curve: A^(k) in the first columns, w^(k) in the last;
+        # the k-th derivative of sum c_i t^i is sum_{i>=k} c_i i!/(i-k)! t^(i-k), by Horner.
+        homogeneous = np.zeros((order + 1, params.size, self._taylor.shape[2]))
+        for k in range(min(order, p) + 1):
+            factor = self._falling[k]
+            value = coefficients[p] * factor[p] if k else coefficients[p]
+            for i in range(p - 1, k - 1, -1):
+                value = value * t + (coefficients[i] * factor[i] if k else coefficients[i])
+            homogeneous[k] = value * (inverse_width**k)[:, None] if k else value
         if self._rational:
             a_ders = homogeneous[..., :-1]
             w_ders = homogeneous[..., -1:]
@@ -278,6 +305,29 @@ class NurbsCurve:
                 rule=CurveRule.PARAMETER,
             )
         return params
+
+
+def _taylor_coefficients(
+    knots: np.ndarray, p: int, homogeneous: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Breakpoints, and the homogeneous curve on each non-empty span as a polynomial in
+    t = (u - start) / width: taylor[i, j] = A^(i)(start_j) width_j^i / i! (A with w last)."""
+    breaks = np.unique(knots)
+    starts = breaks[:-1]
+    span = np.searchsorted(knots, starts, side="right") - 1
+    taylor = np.empty((p + 1, starts.size, homogeneous.shape[1]))
+    widths = np.diff(breaks)
+    factorials = np.array([float(math.factorial(i)) for i in range(p + 1)])
+    for first in range(0, starts.size, _TAYLOR_CHUNK):  # bounded memory on long curves
+        chunk = slice(first, first + _TAYLOR_CHUNK)
+        basis = _basis_derivatives(knots, p, span[chunk], starts[chunk], p)
+        rows = homogeneous[span[chunk] + np.arange(-p, 1)[:, None]]
+        ders = np.einsum("kim,imc->kmc", basis, rows)
+        scale = widths[chunk] ** np.arange(p + 1)[:, None] / factorials[:, None]
+        taylor[:, chunk] = ders * scale[:, :, None]
+    for array in (breaks, taylor):
+        array.flags.writeable = False
+    return breaks, taylor
 
 
 def _basis_derivatives(
