@@ -79,18 +79,14 @@ def geometric_feed_limit(
     :returns: (kappa, v_limit), each (m,); kappa is inf and v_limit 0 where C'(u) = 0.
     :raises ValueError: if an axis limit tuple does not match the curve dimension.
     """
-    speed = np.linalg.norm(d1, axis=1)
+    speed = np.sqrt(np.einsum("ij,ij->i", d1, d1))
     moving = speed > 0.0
     safe = np.where(moving, speed, 1.0)
     tangent = d1 / safe[:, None]
-    along = np.sum(d2 * tangent, axis=1)
+    along = np.einsum("ij,ij->i", d2, tangent)
     normal_vec = (d2 - along[:, None] * tangent) / (safe * safe)[:, None]
-    kappa = np.where(moving, np.linalg.norm(normal_vec, axis=1), np.inf)
-    with np.errstate(divide="ignore"):
-        turn_feed = MAX_TURN_PER_PERIOD_RAD / (kappa * T)
-    v_limit = np.minimum(chord_error_feed(kappa, limits.chord_error_mm, T), turn_feed)
-    if limits.normal_accel_mm_s2 is not None:
-        v_limit = np.minimum(v_limit, normal_accel_feed(kappa, limits.normal_accel_mm_s2))
+    kappa = np.sqrt(np.einsum("ij,ij->i", normal_vec, normal_vec))
+    kappa[~moving] = np.inf
     dim = d1.shape[1]
     for name, values in (
         ("axis_vmax_mm_s", limits.axis_vmax_mm_s),
@@ -102,6 +98,12 @@ def geometric_feed_limit(
                 "must be one per axis"
             )
     with np.errstate(divide="ignore", invalid="ignore"):
+        v_limit = np.minimum(
+            chord_error_feed(kappa, limits.chord_error_mm, T),
+            MAX_TURN_PER_PERIOD_RAD / (kappa * T),
+        )
+        if limits.normal_accel_mm_s2 is not None:
+            v_limit = np.minimum(v_limit, normal_accel_feed(kappa, limits.normal_accel_mm_s2))
         if limits.axis_vmax_mm_s is not None:
             per_axis = np.asarray(limits.axis_vmax_mm_s) / np.abs(tangent)
             v_limit = np.minimum(v_limit, per_axis.min(axis=1))
@@ -110,8 +112,8 @@ def geometric_feed_limit(
             per_axis = np.sqrt(0.5 * np.asarray(limits.axis_amax_mm_s2) / np.abs(normal_vec))
             v_limit = np.minimum(v_limit, per_axis.min(axis=1))
     v_limit = np.maximum(v_limit, singular_floor_feed(limits, T))
-    v_limit = np.where(moving, v_limit, 0.0)
-    return kappa, np.nan_to_num(v_limit, nan=0.0, posinf=np.inf)
+    v_limit[~moving | np.isnan(v_limit)] = 0.0
+    return kappa, v_limit
 
 
 def singular_floor_feed(limits: Limits, T: float) -> float:
