@@ -489,11 +489,8 @@ class _Checker:
         self.s_env, self.v_env, self.lim = s_env, v_env, lim
 
     def interior_min(self, s0: float, s1: float) -> float:
-        i0 = int(np.searchsorted(self.s_env, s0, side="left"))
-        i1 = int(np.searchsorted(self.s_env, s1, side="right"))
-        ends = np.interp([s0, s1], self.s_env, self.v_env)
-        inner = self.v_env[i0:i1]
-        return float(min(ends.min(), inner.min())) if inner.size else float(ends.min())
+        """The lowest limit over [s0, s1]."""
+        return float(self._interior_mins(np.array([s0]), np.array([s1]))[0])
 
     def flat_end_cap(self, s_point: float, s_lo: float, s_hi: float, v_limit: float) -> float:
         """Highest feed at most ``v_limit`` for a sensitive point at s_point between s_lo and
@@ -525,36 +522,54 @@ class _Checker:
         are laid on one time line (a second apart) and sampled together every half period.
         """
         out: list[tuple[float, float] | None] = [None] * len(segments)
-        pending = [
-            i
-            for i, (s0, _, _, v_top, s1) in enumerate(segments)
-            if self.interior_min(s0, s1) < v_top * (1.0 + CHECK_SLACK)
-        ]
-        if not pending:
-            return out
+        s0, v_top, s1 = (np.array([seg[i] for seg in segments]) for i in (0, 3, 4))
+        pending = np.flatnonzero(self._interior_mins(s0, s1) < v_top * (1.0 + CHECK_SLACK))
         train = PhaseTrain(0.0, 0.0, 0.0, 0.0)
-        sampled, times = [], []
-        for i in pending:
-            s0, v0, phases, _, _ = segments[i]
+        sampled, starts, ends = [], [], []
+        for i in pending.tolist():
+            s_start, v_start, phases, _, _ = segments[i]
             start = train.t_s + 1.0
-            train.restart(start, s0, v0, 0.0)
+            train.restart(start, s_start, v_start, 0.0)
             train.extend(phases)
             if train.t_s > start:  # a segment without motion has nothing to exceed
-                n = int(min(max(math.ceil((train.t_s - start) / (0.5 * self.lim.T)), 16), 20_000))
                 sampled.append(i)
-                times.append(np.linspace(start, train.t_s, n + 1))
+                starts.append(start)
+                ends.append(train.t_s)
         if not sampled:
             return out
-        counts = [len(x) for x in times]
-        s, v, _, _ = train.sample(np.concatenate(times))
+        start, end = np.array(starts), np.array(ends)
+        counts = np.clip(np.ceil((end - start) / (0.5 * self.lim.T)), 16, 20_000).astype(int) + 1
+        first = np.cumsum(counts) - counts
+        # Each segment's times from its start to its end, both included, evenly spaced.
+        fraction = (np.arange(counts.sum()) - np.repeat(first, counts)) / np.repeat(
+            counts - 1, counts
+        )
+        times = np.repeat(start, counts) + np.repeat(end - start, counts) * fraction
+        s, v, _, _ = train.sample(times)
         limit = np.interp(s, self.s_env, self.v_env)
         excess = v - limit * (1.0 + CHECK_SLACK) - 1e-9
-        first = np.cumsum([0, *counts[:-1]])
-        for i, lo, n in zip(sampled, first, counts, strict=True):
-            j = lo + int(np.argmax(excess[lo : lo + n]))
+        worst = first + np.array(
+            [int(np.argmax(excess[lo : lo + n])) for lo, n in zip(first, counts, strict=True)]
+        )
+        for i, j in zip(sampled, worst.tolist(), strict=True):
             if excess[j] > 0.0:
                 out[i] = (float(s[j]), float(limit[j]))
         return out
+
+    def _interior_mins(self, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
+        """The lowest limit over each [s0, s1]: at its ends or at a sample inside."""
+        lowest = np.minimum(
+            np.interp(s0, self.s_env, self.v_env), np.interp(s1, self.s_env, self.v_env)
+        )
+        i0 = np.searchsorted(self.s_env, s0, side="left")
+        i1 = np.searchsorted(self.s_env, s1, side="right")
+        inner = np.flatnonzero(i1 > i0)
+        if inner.size:
+            # reduceat over [i0, i1) pairs: the odd entries span the gaps between them.
+            bounds = np.stack([i0[inner], i1[inner]], axis=1).ravel()
+            padded = np.append(self.v_env, np.inf)
+            lowest[inner] = np.minimum(lowest[inner], np.minimum.reduceat(padded, bounds)[::2])
+        return lowest
 
 
 def _sensitive_points(
