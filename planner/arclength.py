@@ -121,7 +121,7 @@ class ArcLengthTable:
         params = _checked(u, "u", *self.curve.domain)
         i = np.minimum(np.searchsorted(self._u_grid, params, side="right") - 1, self._last)
         x = self._local(i, params)
-        s = self._s_grid[i] + _clenshaw(x, self._length[i].T)
+        s = self._s_grid[i] + _series(_chebyshev_t(x, CHEBYSHEV_NODES + 1), self._length[i].T)
         s[params == self._u_grid[i]] = self._s_grid[i][params == self._u_grid[i]]
         s[params == self._u_grid[-1]] = self.length_mm
         return s
@@ -208,8 +208,9 @@ class ArcLengthTable:
                 break
             xa = x[active]
             whole = active.size == x.size
-            residual = _clenshaw(xa, length if whole else length[:, active]) - offset[active]
-            ds_dx = _clenshaw(xa, slope if whole else slope[:, active])
+            t = _chebyshev_t(xa, CHEBYSHEV_NODES + 1)
+            residual = _series(t, length if whole else length[:, active]) - offset[active]
+            ds_dx = _series(t, slope if whole else slope[:, active])
             below = residual < 0.0
             lo[active[below]] = xa[below]
             hi[active[~below]] = xa[~below]
@@ -232,18 +233,22 @@ class ArcLengthTable:
         return x
 
 
-def _clenshaw(x: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
-    """sum_k coefficients[k] T_k(x), elementwise (Clenshaw's recurrence).
-
-    :param x: (m,) values in [-1, 1].
-    :param coefficients: (terms, m) coefficients, one column per x.
-    """
-    b1 = np.zeros(x.size)
-    b2 = np.zeros(x.size)
+def _chebyshev_t(x: np.ndarray, terms: int) -> np.ndarray:
+    """T_k(x) for k < terms (rows) at each x in [-1, 1] (columns), by the three-term recurrence
+    T_k = 2x T_k-1 - T_k-2."""
+    t = np.empty((terms, x.size))
+    t[0] = 1.0
+    t[1] = x
     twice = 2.0 * x
-    for k in range(coefficients.shape[0] - 1, 0, -1):
-        b1, b2 = coefficients[k] + twice * b1 - b2, b1
-    return coefficients[0] + x * b1 - b2
+    for k in range(2, terms):
+        np.multiply(twice, t[k - 1], out=t[k])
+        t[k] -= t[k - 2]
+    return t
+
+
+def _series(t: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """sum_k coefficients[k] T_k(x) for each column, from :func:`_chebyshev_t` rows ``t``."""
+    return np.einsum("km,km->m", t[: len(coefficients)], coefficients)
 
 
 def _antiderivative(coefficients: np.ndarray) -> np.ndarray:

@@ -67,7 +67,12 @@ class Interpolator:
         self._arc = arc
         self._u0, self._u1 = curve.domain
         self._s = float(s_start_mm)
-        self._u = float(arc.u_of_s(min(max(s_start_mm, 0.0), arc.length_mm))[0])
+        # Only taylor2 steps from the previous parameter; corrected solves each row afresh.
+        self._u = (
+            float(arc.u_of_s(min(max(s_start_mm, 0.0), arc.length_mm))[0])
+            if self.update is ParameterUpdate.TAYLOR2
+            else float("nan")
+        )
 
     def parameters(self, s_mm: np.ndarray) -> np.ndarray:
         """u for each planned arc length in ``s_mm`` (consecutive rows of the stream)."""

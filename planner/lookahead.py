@@ -424,6 +424,12 @@ class _Window:
         self.peak_cap = [math.inf] * (len(s) - 1)
         self.cosine = [0] * (len(s) - 1)  # 0: S-curve, 1: cosine, 2: cosine rejected
         self.braking = False  # the first segment brakes from the start state (_brake_first)
+        # Planned phases and top feed of each segment shape met so far (see key).
+        self.plans: dict[tuple, tuple[tuple[Phase, ...], float]] = {}
+
+    def key(self, k: int, v: list[float]) -> tuple:
+        """What segment k's plan depends on: its ends, end speeds, peak cap and profile kind."""
+        return (self.s[k], self.s[k + 1], v[k], v[k + 1], self.peak_cap[k], self.cosine[k])
 
     def insert(self, k: int, s_new: float, cap_new: float) -> None:
         """Split segment k at s_new with a new sensitive point."""
@@ -462,14 +468,20 @@ def _passes(s: list[float], cap: list[float], v_start: float, lim: PlanLimits) -
     return v
 
 
-def _segment(w: _Window, k: int, v: list[float], lim: PlanLimits) -> tuple[list[Phase], float]:
-    """Phases of segment k and its highest planned feed."""
-    v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
-    if w.cosine[k] == 1:
-        t_a = cosine_time_s(v0, v1, L)  # eq. (12)
-        return [Phase(t_a, cosine_dv_mm_s=v1 - v0)], max(v0, v1)
-    vp = cruise_speed(v0, v1, L, min(lim.vmax_mm_s, w.peak_cap[k]), lim.A, lim.J)
-    return segment_phases(v0, vp, v1, L, lim.A, lim.J), max(v0, vp, v1)
+def _segment(
+    w: _Window, k: int, v: list[float], lim: PlanLimits
+) -> tuple[tuple[Phase, ...], float]:
+    """Phases of segment k and its highest planned feed (computed once per window and shape)."""
+    key = w.key(k, v)
+    if key not in w.plans:
+        v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
+        if w.cosine[k] == 1:
+            t_a = cosine_time_s(v0, v1, L)  # eq. (12)
+            w.plans[key] = (Phase(t_a, cosine_dv_mm_s=v1 - v0),), max(v0, v1)
+        else:
+            vp = cruise_speed(v0, v1, L, min(lim.vmax_mm_s, w.peak_cap[k]), lim.A, lim.J)
+            w.plans[key] = tuple(segment_phases(v0, vp, v1, L, lim.A, lim.J)), max(v0, vp, v1)
+    return w.plans[key]
 
 
 def _segment_time_s(w: _Window, k: int, v: list[float], lim: PlanLimits) -> float:
@@ -513,7 +525,7 @@ class _Checker:
         return float(min(v_limit, np.min(self.v_env[lo:hi] + drop)))
 
     def worst_of(
-        self, segments: list[tuple[float, float, list[Phase], float, float]]
+        self, segments: list[tuple[float, float, tuple[Phase, ...], float, float]]
     ) -> list[tuple[float, float] | None]:
         """For each segment (s0, v0, phases, v_top, s1): (s, v_limit) of its worst excess of the
         feed limit, or None if it holds.
@@ -666,9 +678,9 @@ def _failing(
 ) -> list[tuple[int, tuple[float, float]]]:
     """Failing segments, last first, with their worst excess (s, v_limit)."""
     keys: dict[int, tuple] = {}
-    unchecked: dict[tuple, tuple[float, float, list[Phase], float, float]] = {}
+    unchecked: dict[tuple, tuple[float, float, tuple[Phase, ...], float, float]] = {}
     for k in range(len(w.s) - 1):
-        keys[k] = key = (w.s[k], w.s[k + 1], v[k], v[k + 1], w.peak_cap[k], w.cosine[k])
+        keys[k] = key = w.key(k, v)
         if key not in verdicts and key not in unchecked:
             phases, v_top = _segment(w, k, v, lim)
             unchecked[key] = (w.s[k], v[k], phases, v_top, w.s[k + 1])
@@ -767,7 +779,7 @@ def _released(
         if not final and (k + 1 == n - 1 or abs(v[k + 1] - upper[k + 1]) > 1e-12 * lim.vmax_mm_s):
             break
         phases, _ = _segment(w, k, v, lim)
-        out.append(SegmentPlan(tuple(phases), w.s[k + 1], v[k + 1]))
+        out.append(SegmentPlan(phases, w.s[k + 1], v[k + 1]))
         k += 1
     return out, k
 

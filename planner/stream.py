@@ -167,7 +167,7 @@ def _planned_rows(
     train = PhaseTrain(t, s, v, a)
     for segment in segments:
         train.restart(t, s, v, a)  # each segment starts from its exact planned state
-        train.extend(list(segment.phases))
+        train.extend(segment.phases)
         t_end = train.t_s
         if segment.v_end_mm_s == 0.0:
             # At rest inside the motion (a sharp corner): wait for the next period boundary.

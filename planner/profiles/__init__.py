@@ -11,6 +11,7 @@ pure computation.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,7 +39,7 @@ class PhaseTrain:
     def __len__(self) -> int:
         return len(self._rows)
 
-    def extend(self, phases: list[Phase]) -> None:
+    def extend(self, phases: Sequence[Phase]) -> None:
         """Append phases, advancing the end state exactly (constant jerk: cubic in time)."""
         for phase in phases:
             tau = phase.duration_s
