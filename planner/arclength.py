@@ -303,6 +303,7 @@ def _build_table(curve: NurbsCurve) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     split = -(-MIN_INTERVALS // (len(breaks) - 1))
     edges = np.linspace(breaks[:-1], breaks[1:], split + 1, axis=1)
     lo, hi = edges[:, :-1].ravel(), edges[:, 1:].ravel()
+    lo, hi = lo[hi > lo], hi[hi > lo]  # a span a few ulp wide has fewer distinct parts
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     floor = None
     for level in range(_MAX_LEVELS + 1):

@@ -22,8 +22,9 @@ inserted at the worst violation) until v(s) <= v_limit(s).
 
 Streaming with bounded memory: a window of the path is planned assuming a stop at its end, and
 only the part that a longer look-ahead could no longer change is released (its speeds equal
-those planned with no stop at the window end); the window then moves on. Only the window's
-points and the envelope chunks it touches are held. A stop at the window end is not always the
+those planned with no stop at the window end); the window then moves on (a rest of the path
+shorter than half a window joins the window before it). Only the window's points and the
+envelope chunks it touches are held. A stop at the window end is not always the
 hardest case: a staircase of points refined beyond it can brake more slowly than one ramp, so
 a window whose start is too fast for its staircase merges it into one braking segment
 (:func:`_brake_first`).
@@ -86,6 +87,8 @@ MAX_OVERRIDE_RATIO = 2.0
 CHORD_MARGIN = 0.03
 #: Window length in braking distances from vmax, and the lower bound of the window, mm.
 WINDOW_BRAKING_DISTANCES, MIN_WINDOW_MM = 16.0, 1.0
+#: A rest of the path shorter than this fraction of a window joins the window before it.
+TAIL_WINDOW_FRACTION = 0.5
 #: Refinement rounds, and sensitive points, of one window before the failing segments are
 #: flattened under their lowest limit instead.
 MAX_REFINEMENTS, MAX_WINDOW_POINTS = 30, 300
@@ -810,8 +813,9 @@ def plan_segments(
     a_start: float,
     *,
     stop: bool,
-) -> Iterator[SegmentPlan]:
-    """Released stretches of the motion from the start state to rest, in order.
+) -> Iterator[list[SegmentPlan]]:
+    """Released stretches of the motion from the start state to rest, in order, in the groups
+    that each window releases.
 
     The first stretch brings the start acceleration to zero (jerk-limited); then windows of the
     path are planned and released. With ``stop`` the motion comes to rest as soon as the limits
@@ -824,7 +828,7 @@ def plan_segments(
         train = PhaseTrain(0.0, s, v, a_start)
         train.extend(settle)
         s, v = min(train.s_mm, length_mm), settled_speed(v_start, a_start, J)
-        yield SegmentPlan(tuple(settle), s, v)
+        yield [SegmentPlan(tuple(settle), s, v)]
     window_mm = max(
         WINDOW_BRAKING_DISTANCES * braking_distance_mm(lim.vmax_mm_s, A, J), MIN_WINDOW_MM
     )
@@ -835,7 +839,10 @@ def plan_segments(
     while s < stop_at or v > 0.0:
         if s >= length_mm:
             break
-        s_end = min(s + window_mm + extra, stop_at)
+        s_end = s + window_mm + extra
+        if stop_at - s_end < TAIL_WINDOW_FRACTION * window_mm:
+            s_end = stop_at  # one window to the end rather than a short one after it
+        s_end = min(s_end, stop_at)
         final = s_end >= stop_at
         s_env, v_env = envelope.query(s, s_end)
         pts, cap, fv = _sensitive_points(s_env, v_env, s, s_end, lim.vmax_mm_s)
@@ -856,7 +863,7 @@ def plan_segments(
                 if s_end < length_mm:
                     continue
             segments, k = _released(w, v_plan, v_plan, lim, final=True)
-            yield from segments
+            yield segments
             return
         upper_caps = list(w.cap)
         upper_caps[-1] = lim.vmax_mm_s
@@ -869,5 +876,5 @@ def plan_segments(
             extra = 2.0 * (extra + window_mm)
             continue
         extra = 0.0
-        yield from segments
+        yield segments
         s, v = segments[-1].s_end_mm, segments[-1].v_end_mm_s

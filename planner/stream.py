@@ -162,31 +162,31 @@ def _planned_rows(
     )
     t, s, v, a = 0.0, state.s_mm, state.v_mm_s, state.a_mm_s2
     k_next = k_end = 0 if fresh else 1
-    # Segments are sampled together once they hold min_rows rows: one vectorised sampling
-    # instead of one per segment.
+    # What the windows release is sampled together once it holds min_rows rows, when the next
+    # release comes (the rows before the end go out with the final row): one vectorised
+    # sampling instead of one per segment.
     train = PhaseTrain(t, s, v, a)
-    for segment in segments:
-        train.restart(t, s, v, a)  # each segment starts from its exact planned state
-        train.extend(segment.phases)
-        t_end = train.t_s
-        if segment.v_end_mm_s == 0.0:
-            # At rest inside the motion (a sharp corner): wait for the next period boundary.
-            t_end = math.ceil(t_end / T - _TIME_EPS) * T
-            train.extend([Phase(t_end - train.t_s, 0.0)])
-        k_end = max(k_end, math.ceil(t_end / T - _TIME_EPS))  # rows with k T < t_end
-        t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, 0.0
+    for released in segments:
         if k_end - k_next >= min_rows:
             times = np.arange(k_next, k_end) * T
             yield (times, *train.sample(times)), False
             k_next = k_end
             train = PhaseTrain(t, s, v, a)
-    if k_end > k_next:
-        times = np.arange(k_next, k_end) * T
-        yield (times, *train.sample(times)), False
-        k_next = k_end
-    k_last = max(k_next, math.ceil(t / T - _TIME_EPS))
-    final = (np.array([k_last * T]), np.array([s]), np.zeros(1), np.zeros(1), np.zeros(1))
-    yield final, True
+        for segment in released:
+            train.restart(t, s, v, a)  # each segment starts from its exact planned state
+            train.extend(segment.phases)
+            t_end = train.t_s
+            if segment.v_end_mm_s == 0.0:
+                # At rest inside the motion (a sharp corner): wait for the next period boundary.
+                t_end = math.ceil(t_end / T - _TIME_EPS) * T
+                train.extend([Phase(t_end - train.t_s, 0.0)])
+            k_end = max(k_end, math.ceil(t_end / T - _TIME_EPS))  # rows with k T < t_end
+            t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, 0.0
+    times = np.arange(k_next, k_end) * T
+    rows = train.sample(times)
+    k_last = max(k_end, math.ceil(t / T - _TIME_EPS))
+    at_rest = (k_last * T, s, 0.0, 0.0, 0.0)
+    yield tuple(np.append(c, end) for c, end in zip((times, *rows), at_rest, strict=True)), True
 
 
 def _adaptive_rows(
@@ -225,9 +225,9 @@ def _blocks(
 ) -> Iterator[SetpointBlock]:
     """Group rows into blocks, adding u and positions; the final block has last=True.
 
-    Parameters and positions are computed for batches of rows that double from one block up to
-    ``BATCH_ROWS``: the first block comes as soon as it is planned, and later ones share the
-    fixed cost of the vectorised curve evaluations.
+    Parameters and positions are computed for all pending rows at once (up to ``BATCH_ROWS``)
+    as soon as they fill a block, then twice as many, and so on: the first block comes as soon
+    as it is planned, and later ones share the fixed cost of the vectorised curve evaluations.
     """
     pending: list[_Rows] = []
     count = 0
@@ -237,7 +237,7 @@ def _blocks(
         count += len(rows_in[0])
         while count > batch or (done and count > 0):
             cols = [np.concatenate([p[i] for p in pending]) for i in range(5)]
-            n = min(batch, count)
+            n = min(count, max(batch, BATCH_ROWS))
             rest = [c[n:] for c in cols]
             big = _block(path, interp, [c[:n] for c in cols], last=done and n == count)
             for start in range(0, n, block_periods):
