@@ -41,7 +41,8 @@ class RealtimeConfig:
     cpu: int | None = None
     """CPU the cyclic thread is pinned to; None leaves affinity alone."""
     lock_memory: bool = True
-    """mlockall(MCL_CURRENT | MCL_FUTURE) so page faults never stall a cycle."""
+    """mlockall(MCL_CURRENT | MCL_FUTURE) so page faults never stall a cycle, and malloc
+    keeps freed memory for reuse (see runtime.realtime)."""
     gc: str = "freeze"
     """Garbage collector while moving: freeze (gc.freeze + disable), disable, or normal."""
     spin_us: float = 200.0

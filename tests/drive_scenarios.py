@@ -390,4 +390,6 @@ class DriveScenarios:
         assert feedback[lost_index].heartbeat_age_s <= 3 * period_s
         assert f"axis {self.AXIS_NAMES[lost_index]} (node {lost_node}): no heartbeat" in str(fault)
         others = [f for i, f in enumerate(feedback) if i != lost_index]
-        assert all(f.fault is None and f.state is State.OPERATION_ENABLED for f in others)
+        assert all(f.fault is None and f.state is State.OPERATION_ENABLED for f in others), [
+            (f.state, str(f.fault)) for f in others
+        ]

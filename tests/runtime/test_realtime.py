@@ -39,8 +39,8 @@ def test_one_report_line_and_one_info_record_per_setting(
 ) -> None:
     with caplog.at_level(logging.INFO, logger="runtime.realtime"):
         applied = apply_in_thread(NOTHING)
-    assert len(applied.report) == 5
-    assert [r.levelno for r in caplog.records] == [logging.INFO] * 5
+    assert len(applied.report) == 6
+    assert [r.levelno for r in caplog.records] == [logging.INFO] * 6
     assert [r.getMessage() for r in caplog.records] == [
         f"cyclic: {line}" for line in applied.report
     ]
@@ -158,6 +158,36 @@ def test_memory_lock_in_a_separate_process() -> None:
     else:
         assert int(locked_kb) > 0
         assert int(after_kb) == 0
+
+
+def test_heap_policy_in_a_separate_process() -> None:
+    # mallopt is process-wide: exercised in a child. Under malloc's defaults a freed 40 MB buffer
+    # goes back to the OS (resident memory falls again); once the heap keeps freed memory, it
+    # stays resident for the next buffer.
+    code = (
+        "import numpy as np\n"
+        "from runtime.config import RealtimeConfig\n"
+        "from runtime.realtime import apply_realtime\n"
+        "rss = lambda: int([l for l in open('/proc/self/status') if l.startswith('VmRSS')][0]"
+        ".split()[1])\n"
+        "def kept_kb():\n"
+        "    before = rss()\n"
+        "    buffer = np.ones(5 << 20)\n"
+        "    del buffer\n"
+        "    return rss() - before\n"
+        "a = apply_realtime(RealtimeConfig(priority=0, lock_memory=False, gc='normal'))\n"
+        "print(a.report[3]); print(kept_kb())\n"
+        "a = apply_realtime(RealtimeConfig(priority=0, lock_memory=True, gc='normal'))\n"
+        "print(a.report[3]); print(kept_kb())\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    off_line, returned_kb, on_line, kept_kb = result.stdout.splitlines()
+    assert off_line == "malloc policy not requested: freed memory may go back to the OS"
+    assert on_line.startswith("malloc keeps freed memory (M_MMAP_MAX 0, no trimming)")
+    assert int(returned_kb) < 4_000
+    assert int(kept_kb) > 36_000
 
 
 def test_gc_policy_disable_and_normal() -> None:
