@@ -139,8 +139,17 @@ def test_switch_interval_applied_and_restored() -> None:
     assert sys.getswitchinterval() == before
 
 
+def child_lines(code: str) -> list[str]:
+    """What a child Python running ``code`` prints, line by line (process-wide settings are
+    exercised in a child so the test process keeps its own)."""
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    return result.stdout.splitlines()
+
+
 def test_memory_lock_in_a_separate_process() -> None:
-    # mlockall is process-wide: exercised in a child so the test process stays unlocked.
+    # mlockall is process-wide: the test process stays unlocked.
     code = (
         "from runtime.config import RealtimeConfig\n"
         "from runtime.realtime import apply_realtime\n"
@@ -148,10 +157,7 @@ def test_memory_lock_in_a_separate_process() -> None:
         "lck = lambda: [l for l in open('/proc/self/status') if l.startswith('VmLck')][0]\n"
         "print(a.report[2]); print(lck().split()[1]); a.restore(); print(lck().split()[1])\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
-    )
-    line, locked_kb, after_kb = result.stdout.splitlines()
+    line, locked_kb, after_kb = child_lines(code)
     if "not applied" in line:
         assert "CAP_IPC_LOCK" in line  # unprivileged: the refusal is reported, nothing locked
         assert int(locked_kb) == 0
@@ -161,9 +167,8 @@ def test_memory_lock_in_a_separate_process() -> None:
 
 
 def test_heap_policy_in_a_separate_process() -> None:
-    # mallopt is process-wide: exercised in a child. Under malloc's defaults a freed 40 MB buffer
-    # goes back to the OS (resident memory falls again); once the heap keeps freed memory, it
-    # stays resident for the next buffer.
+    # Under malloc's defaults a freed 40 MB buffer goes back to the OS (resident memory falls
+    # again); once the heap keeps freed memory, it stays resident for the next buffer.
     code = (
         "import numpy as np\n"
         "from runtime.config import RealtimeConfig\n"
@@ -180,10 +185,7 @@ def test_heap_policy_in_a_separate_process() -> None:
         "a = apply_realtime(RealtimeConfig(priority=0, lock_memory=True, gc='normal'))\n"
         "print(a.report[3]); print(kept_kb())\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
-    )
-    off_line, returned_kb, on_line, kept_kb = result.stdout.splitlines()
+    off_line, returned_kb, on_line, kept_kb = child_lines(code)
     assert off_line == "malloc policy not requested: freed memory may go back to the OS"
     assert on_line.startswith("malloc keeps freed memory (M_MMAP_MAX 0, no trimming)")
     assert int(returned_kb) < 4_000
