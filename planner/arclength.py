@@ -16,8 +16,9 @@ u(s) starts from quintic Hermite interpolation of u, du/ds and d2u/ds2 at the en
 interval that holds s (or from a caller's guess inside that interval) and takes Newton steps on
 the series, with ds/du = |C'| from the interpolant, falling back to bisection of the bracket
 where a step would leave it (for example where C'(u) = 0 at a sharp corner). A step whose
-predicted error (the interval's bound of |d2s/du2| / 2 du^2) is far below the tolerance is
-accepted without another evaluation; u(s) usually takes two or three Newton steps.
+predicted error (the interval's bound of |d2s/dx2| / 2 dx^2, x its local parameter) is far
+below the tolerance is accepted without another evaluation; u(s) usually takes two or three
+Newton steps.
 
 Units: s and lengths in mm, u dimensionless.
 Accuracy: about 1e-11 relative to the curve length for s(u) where |C'| is smooth (at a cusp
@@ -81,7 +82,7 @@ class ArcLengthTable:
         half = 0.5 * (hi - lo)
         # |C'| = sum a_k T_k(x) with u = lo + (x + 1) half; its antiderivative from x = -1,
         # times half, is the arc length from the interval's start in mm.
-        self._speed = speed
+        self._ds_dx = speed * half[:, None]
         self._length = _antiderivative(speed) * half[:, None]
         self._lo, self._hi, self._half = lo, hi, half
         self._u_grid = np.append(lo, hi[-1])
@@ -98,7 +99,7 @@ class ArcLengthTable:
             self._du_ds = 1.0 / ends
             self._d2u_ds2 = -slopes / ends**3
         # |d2s/dx2| <= half sum k^2 |a_k| (|T_k'| <= k^2): bounds the error of a Newton step.
-        self._curvature_bound = half * (np.abs(speed) @ _SQUARES)
+        self._d2s_dx2_bound = half * (np.abs(speed) @ _SQUARES)
 
     @property
     def u_grid(self) -> np.ndarray:
@@ -122,7 +123,8 @@ class ArcLengthTable:
         i = np.minimum(np.searchsorted(self._u_grid, params, side="right") - 1, self._last)
         x = self._local(i, params)
         s = self._s_grid[i] + _series(_chebyshev_t(x, CHEBYSHEV_NODES + 1), self._length[i].T)
-        s[params == self._u_grid[i]] = self._s_grid[i][params == self._u_grid[i]]
+        at_start = params == self._lo[i]
+        s[at_start] = self._s_grid[i][at_start]
         s[params == self._u_grid[-1]] = self.length_mm
         return s
 
@@ -199,8 +201,8 @@ class ArcLengthTable:
     def _newton(self, i: np.ndarray, x: np.ndarray, offset: np.ndarray) -> np.ndarray:
         """Solve length_i(x) = offset for x in [-1, 1], from the guess x."""
         length = self._length[i].T
-        slope = (self._speed[i] * self._half[i][:, None]).T  # d length / dx
-        bound = self._curvature_bound[i]
+        slope = self._ds_dx[i].T
+        bound = self._d2s_dx2_bound[i]
         lo, hi = np.full(x.size, -1.0), np.full(x.size, 1.0)
         active = np.arange(x.size)
         for _ in range(_MAX_ITERATIONS):
