@@ -199,7 +199,7 @@ class FeedEnvelope:
             corner = (norms > 0.0) & (cos_turn < 1.0 - CORNER_COS_TOL)
             v[knot_rows[corner]] = 0.0
             kappa[knot_rows[corner]] = np.inf
-        samples = (u, v, d1, d2)
+        samples = (u, v)
         extras = []
         peaks = self._refined_maxima(u, kappa)
         if peaks.size:
@@ -209,18 +209,16 @@ class FeedEnvelope:
             width = 0.1 * (u[i] - u[i - 1])
             trio = np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1])
             trio = trio.ravel()
-            k_trio, v_trio, d1_trio, d2_trio = self._limit(trio)
-            extras.append((trio, v_trio, d1_trio, d2_trio))
+            k_trio, v_trio, _, _ = self._limit(trio)
+            extras.append((trio, v_trio))
             extras.append(self._sampled(self._refined_maxima(trio, k_trio)))
         cusps = self._cusps(u, d1)
         if cusps.size:
             # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
-            _, _, d1_cusp, d2_cusp = self._limit(cusps)
-            cusp_samples = (cusps, np.zeros(cusps.size), np.zeros_like(d1_cusp), d2_cusp)
-            samples = self._merged(samples, [cusp_samples])
+            samples = self._merged(samples, [(cusps, np.zeros(cusps.size))])
         extras.append(self._sampled(self._corner_grid(samples[0], samples[1])))
         extras.append(self._tight_midpoints(u, v))
-        u, v, d1, d2 = self._merged(samples, extras)
+        u, v = self._merged(samples, extras)
         s = np.maximum.accumulate(self._arc.s_of_u(u))
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
@@ -240,17 +238,15 @@ class FeedEnvelope:
         kappa, v = geometric_feed_limit(d1, d2, self._planning_limits, self._T)
         return kappa, v, d1, d2
 
-    def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Samples (u, v_limit, C', C'') at u."""
-        _, v, d1, d2 = self._limit(u)
-        return u, v, d1, d2
+    def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Samples (u, v_limit) at u."""
+        return u, self._limit(u)[1]
 
     @staticmethod
     def _merged(
-        samples: tuple[np.ndarray, ...], extras: list[tuple[np.ndarray, ...]]
-    ) -> tuple[np.ndarray, ...]:
-        """Samples (u, v_limit, C', C'') with the extra ones strictly inside them added, in
-        order of u."""
+        samples: tuple[np.ndarray, np.ndarray], extras: list[tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Samples (u, v_limit) with the extra ones strictly inside them added, in order of u."""
         lo, hi = samples[0][0], samples[0][-1]
         parts = [samples]
         for extra in extras:
@@ -259,9 +255,9 @@ class FeedEnvelope:
                 parts.append(tuple(column[inside] for column in extra))
         if len(parts) == 1:
             return samples
-        merged = [np.concatenate(columns) for columns in zip(*parts, strict=True)]
-        order = np.argsort(merged[0], kind="stable")
-        return tuple(column[order] for column in merged)
+        u, v = (np.concatenate(columns) for columns in zip(*parts, strict=True))
+        order = np.argsort(u, kind="stable")
+        return u[order], v[order]
 
     def _cusps(self, u: np.ndarray, d1: np.ndarray) -> np.ndarray:
         """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).
@@ -285,8 +281,8 @@ class FeedEnvelope:
         reverses = dots[turn] < 0.0
         return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
 
-    def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Samples (u, v_limit, C', C'') added where the grid is coarse for the feed limit.
+    def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Samples (u, v_limit) added where the grid is coarse for the feed limit.
 
         The limit is interpolated linearly between samples, which is only safe where it changes
         little: an interval is halved, up to ``TIGHT_LEVELS`` times, while its limit changes by
@@ -313,8 +309,9 @@ class FeedEnvelope:
                 np.concatenate([mid[1], v_hi[coarse]]),
             )
         if not added:
-            return self._sampled(np.empty(0))
-        return tuple(np.concatenate(columns) for columns in zip(*added, strict=True))
+            return np.empty(0), np.empty(0)
+        u_added, v_added = (np.concatenate(columns) for columns in zip(*added, strict=True))
+        return u_added, v_added
 
     @staticmethod
     def _refined_maxima(u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
