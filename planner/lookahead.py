@@ -186,9 +186,9 @@ class FeedEnvelope:
         # A tangent that turns at a knot is a sharp corner: the feed must come to 0 there.
         knot_rows = np.cumsum(counts)[:-1]
         below = np.nextafter(u[knot_rows], -np.inf)
-        kappa, v, d1, d2 = self._limit(np.concatenate([u, below]))
+        kappa, v, d1, _ = self._limit(np.concatenate([u, below]))
         k_left, v_left, d_left = kappa[u.size :], v[u.size :], d1[u.size :]
-        kappa, v, d1, d2 = kappa[: u.size], v[: u.size], d1[: u.size], d2[: u.size]
+        kappa, v, d1 = kappa[: u.size], v[: u.size], d1[: u.size]
         if knot_rows.size:
             v[knot_rows] = np.minimum(v[knot_rows], v_left)
             kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
@@ -499,6 +499,8 @@ class _Checker:
         if moving.sum() >= 2:
             s_env, v_env = s_env[moving], v_env[moving]
         self.s_env, self.v_env, self.lim = s_env, v_env, lim
+        # The limits with a sentinel after the last, so that a range may end at len(v_env).
+        self._v_padded = np.append(v_env, np.inf)
 
     def interior_min(self, s0: float, s1: float) -> float:
         """The lowest limit over [s0, s1]."""
@@ -579,8 +581,8 @@ class _Checker:
         if inner.size:
             # reduceat over [i0, i1) pairs: the odd entries span the gaps between them.
             bounds = np.stack([i0[inner], i1[inner]], axis=1).ravel()
-            padded = np.append(self.v_env, np.inf)
-            lowest[inner] = np.minimum(lowest[inner], np.minimum.reduceat(padded, bounds)[::2])
+            inside = np.minimum.reduceat(self._v_padded, bounds)[::2]
+            lowest[inner] = np.minimum(lowest[inner], inside)
         return lowest
 
 

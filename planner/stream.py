@@ -232,19 +232,20 @@ def _blocks(
     pending: list[_Rows] = []
     count = 0
     batch = block_periods
+    largest = max(block_periods, BATCH_ROWS)
     for rows_in, done in rows:
         pending.append(rows_in)
         count += len(rows_in[0])
         while count > batch or (done and count > 0):
             cols = [np.concatenate([p[i] for p in pending]) for i in range(5)]
-            n = min(count, max(batch, BATCH_ROWS))
+            n = min(count, largest)
             rest = [c[n:] for c in cols]
             big = _block(path, interp, [c[:n] for c in cols], last=done and n == count)
             for start in range(0, n, block_periods):
                 yield big.rows(start, start + block_periods)
             pending = [tuple(rest)] if n < count else []  # type: ignore[list-item]
             count -= n
-            batch = min(2 * batch, max(block_periods, BATCH_ROWS))
+            batch = min(2 * batch, largest)
 
 
 def _block(path: Path, interp: Interpolator, cols: list[np.ndarray], last: bool) -> SetpointBlock:
