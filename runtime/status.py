@@ -1,13 +1,19 @@
-"""The machine's status: states, fault kinds, and the snapshot the cyclic task publishes.
+"""The machine's status: states, fault kinds, and the snapshot the cycle publishes every period.
 
-The cyclic task builds one :class:`StatusSnapshot` per cycle and publishes it by reference swap;
-readers (the HMI server, the command line) always see one complete, consistent cycle.
+The cycle process builds one :class:`StatusSnapshot` per period and publishes it in shared
+memory (:mod:`runtime.shared`); readers in other processes (the HMI server, the command line)
+always decode one complete, consistent period. Before the cycle's first period there is no
+snapshot at all: readers get None and say so (the HMI answers that the runtime is starting).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from runtime.commands import CommandRecord
 
 
 class MachineState(IntEnum):
@@ -18,13 +24,28 @@ class MachineState(IntEnum):
     STANDBY = 1
     """Drives enabled, at rest (PLCopen Standstill)."""
     MOVING = 2
-    """Following the loaded curve."""
+    """Following the loaded program (the approach to its start included)."""
     HOLDING = 3
     """Feed hold: decelerating to rest on the path, or resting there; resumable."""
     STOPPING = 4
     """Stop: decelerating to rest on the path; the program ends."""
     ERROR_STOP = 5
     """A fault stopped the machine; needs reset."""
+
+
+class MotionPhase(IntEnum):
+    """What the setpoint is doing; values are the HMI's phase codes."""
+
+    IDLE = 0
+    """At rest, no plan being followed."""
+    STARTING = 1
+    """A plan was asked for; waiting for its first setpoints (the axes stand still)."""
+    APPROACH = 2
+    """The straight move from where the axes stood to the program's start point."""
+    PROGRAM = 3
+    """Following the program's curve."""
+    BRAKING = 4
+    """Braking to rest on the path (hold, stop, fault, override 0)."""
 
 
 class FaultKind(IntEnum):
@@ -40,25 +61,38 @@ class FaultKind(IntEnum):
     HMI_LINK_LOSS = 7
     PLANNER_ERROR = 8
     BOOT_FAILURE = 9
+    PLANNER_LOST = 10
 
 
 FAULT_TEXTS: dict[FaultKind, str] = {
     FaultKind.NONE: "no fault",
     FaultKind.DRIVE_FAULT: "a drive reported a fault (EMCY or statusword fault bit)",
-    FaultKind.HEARTBEAT_LOSS: "a drive stopped sending its heartbeat",
+    FaultKind.HEARTBEAT_LOSS: "a drive stopped sending its heartbeat (or answering node guarding)",
     FaultKind.STALE_FEEDBACK: "a drive's feedback (TPDO) stopped arriving",
     FaultKind.FOLLOWING_ERROR: "an axis's following error exceeded its window",
-    FaultKind.BUFFER_UNDERRUN: "the setpoint buffer ran empty during motion",
+    FaultKind.BUFFER_UNDERRUN: "the planner fell behind: too few setpoints ahead to go on",
     FaultKind.CYCLE_OVERRUN: "too many consecutive missed cycle periods",
     FaultKind.HMI_LINK_LOSS: "the HMI heartbeat stopped changing during motion",
     FaultKind.PLANNER_ERROR: "the planner failed while producing setpoints",
-    FaultKind.BOOT_FAILURE: "a drive did not boot or configure",
+    FaultKind.BOOT_FAILURE: "a drive did not boot or could not be configured",
+    FaultKind.PLANNER_LOST: "the planner process stopped; it is being restarted",
 }
+
+
+class WatchdogState(IntEnum):
+    """The HMI link watchdog, as the cycle runs it."""
+
+    OFF = 0
+    """No watchdog configured (timeout 0) or the server is read-only."""
+    WATCHING = 1
+    """Armed: the HMI heartbeat or a command must come within the timeout while moving."""
+    TRIPPED = 2
+    """It fired (hold or stop); re-armed by the next HMI heartbeat change or command."""
 
 
 @dataclass(frozen=True)
 class Fault:
-    """An active fault: its kind, the drive's EMCY code if any, the axis and a readable text."""
+    """A fault: its kind, the drive's EMCY code if any, the axis and a readable text."""
 
     kind: FaultKind
     text: str
@@ -68,21 +102,26 @@ class Fault:
 
 @dataclass(frozen=True)
 class AxisStatus:
-    """One axis as of the last cycle."""
+    """One axis as of the last period."""
 
     name: str
     node_id: int
     commanded_mm: float
     actual_mm: float
     drive_state: int
-    """CiA 402 state (drives.cia402.State value)."""
+    """CiA 402 state (drives.cia402.State value), -1 when the statusword matched none."""
     following_error_mm: float
+    """Actual position minus the target given for that instant (see the register map)."""
+    statusword: int = 0
+    """Raw CiA 402 statusword 0x6041 of the last feedback."""
+    boot_phase: int = 0
+    """drives' boot phase of the node (0 waiting ... ready; see the register map)."""
     fault: str = ""
 
 
 @dataclass(frozen=True)
 class CycleStatistics:
-    """Timing of the cyclic task since start (or the last statistics reset)."""
+    """Timing of the cycle since start (or the last statistics reset)."""
 
     cycles: int = 0
     lateness_last_us: float = 0.0
@@ -95,24 +134,46 @@ class CycleStatistics:
 
 
 @dataclass(frozen=True)
+class ProgramStatus:
+    """A program as the status shows it (the active one or the next one)."""
+
+    program_id: int
+    name: str
+    crc32: int
+    length_mm: float
+
+
+@dataclass(frozen=True)
 class StatusSnapshot:
-    """Everything an HMI can read, taken at the end of one cycle."""
+    """Everything an HMI can read, taken at the end of one period."""
 
     state: MachineState = MachineState.DISABLED
     fault: Fault | None = None
+    """The fault that caused the ErrorStop (the first one; it stays until reset)."""
+    later_faults: tuple[Fault, ...] = ()
+    """Faults reported after the first one until the reset, oldest first (bounded)."""
     axes: tuple[AxisStatus, ...] = ()
+    phase: MotionPhase = MotionPhase.IDLE
     feed_mm_s: float = 0.0
     path_s_mm: float = 0.0
+    """Distance travelled along the current phase's path: the program's curve, or the approach
+    line during APPROACH (then ``path_length_mm`` is the approach's length)."""
     path_length_mm: float = 0.0
+    in_position: bool = False
+    """At rest with every enabled axis within its following-error window of its target."""
+    program: ProgramStatus | None = None
+    next_program: ProgramStatus | None = None
     override_percent: float = 100.0
     stats: CycleStatistics = field(default_factory=CycleStatistics)
-    last_command_seq: int = 0
-    last_command_result: int = 0
-    curve_id: int = 0
-    curve_crc: int = 0
+    last_command: CommandRecord | None = None
+    recent_commands: tuple[CommandRecord, ...] = ()
+    """The last commands judged, oldest first (bounded), so a client finds its own ticket's
+    result even when others came after it."""
+    watchdog: WatchdogState = WatchdogState.OFF
     heartbeat: int = 0
+    """+1 per period, wraps at 65536."""
     message: str = ""
-    """The last state change's reason, e.g. 'hold: HMI link lost'."""
+    """The last state change's reason, e.g. 'hold by watchdog: HMI link silent for 1.0 s'."""
 
     @property
     def progress_permille(self) -> int:
