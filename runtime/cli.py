@@ -9,7 +9,6 @@ prints its :class:`~runtime.errors.ConfigError` and exits with status 2, without
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
@@ -126,9 +125,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``softmotion`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.log_level != "DEBUG":
-        # canopen logs every SDO transfer and PDO mapping step at INFO.
-        logging.getLogger("canopen").setLevel(logging.WARNING)
     with queued_logging(args.log_level):
         return _run(args)
 
@@ -138,7 +134,12 @@ def _run(args: argparse.Namespace) -> int:
         if args.command == "run":
             from runtime.app import run_machine
 
-            return run_machine(load_config(args.config), demo=args.demo, curve_path=args.curve)
+            return run_machine(
+                load_config(args.config),
+                demo=args.demo,
+                curve_path=args.curve,
+                log_level=args.log_level,
+            )
         if args.command == "plan":
             return _plan(args)
         if args.command == "hmi":

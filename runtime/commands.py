@@ -147,7 +147,9 @@ _MOTION_LOAD = frozenset({CommandCode.LOAD_CURVE, CommandCode.CLEAR_NEXT, Comman
 ALLOWED: dict[MachineState, frozenset[CommandCode]] = {
     _S.DISABLED: frozenset({CommandCode.ENABLE} | _MOTION_LOAD),
     _S.STANDBY: frozenset({CommandCode.DISABLE, CommandCode.START} | _MOTION_LOAD),
-    _S.MOVING: frozenset({CommandCode.HOLD, CommandCode.STOP, CommandCode.QUICK_STOP} | _MOTION_LOAD),
+    _S.MOVING: frozenset(
+        {CommandCode.HOLD, CommandCode.STOP, CommandCode.QUICK_STOP} | _MOTION_LOAD
+    ),
     _S.HOLDING: frozenset(
         {CommandCode.RESUME, CommandCode.STOP, CommandCode.QUICK_STOP} | _MOTION_LOAD
     ),

@@ -153,7 +153,15 @@ class MachineBehaviourConfig:
     """How the machine reacts to faults."""
 
     fault_reaction: str = "stop"
-    """``stop``: jerk-limited stop on the path; ``quick_stop``: the drives' quick stop (605A)."""
+    """Reaction to faults that leave every drive able to follow the path (planner, cycle
+    overrun, HMI link, following error...): ``stop`` brakes jerk-limited along the path;
+    ``quick_stop`` asks every drive for its quick stop (605A)."""
+    axis_fault_reaction: str = "quick_stop"
+    """Reaction of the other axes when an axis's drive faults or is lost (that axis stops on
+    its own fault reaction, 605E): ``quick_stop`` stops every axis as fast as its drive can,
+    the least deviation from the path; ``stop`` brakes the others along the path (they keep
+    the path while the faulted axis stands, so the tool leaves it by what the faulted axis
+    misses)."""
 
 
 @dataclass(frozen=True)
@@ -456,7 +464,8 @@ def _parse_simulation(s: _Section) -> SimulationConfig:
 
 def _parse_machine(s: _Section) -> MachineBehaviourConfig:
     config = MachineBehaviourConfig(
-        fault_reaction=s.string("fault_reaction", "stop", choices=FAULT_REACTIONS)
+        fault_reaction=s.string("fault_reaction", "stop", choices=FAULT_REACTIONS),
+        axis_fault_reaction=s.string("axis_fault_reaction", "quick_stop", choices=FAULT_REACTIONS),
     )
     s.finish()
     return config

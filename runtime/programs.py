@@ -78,7 +78,8 @@ class ProgramStore:
         source = self.directory / f"program-{program_id}.npz"
         if len(str(source).encode()) > SOURCE_BYTES:
             raise CurveError(
-                "program", f"store path {source} longer than {SOURCE_BYTES} bytes",
+                "program",
+                f"store path {source} longer than {SOURCE_BYTES} bytes",
                 rule=CurveRule.FORMAT,
             )
         partial = source.with_suffix(".partial.npz")

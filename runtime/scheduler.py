@@ -155,6 +155,7 @@ class CyclicTask:
         self._ring = LatenessRing(lateness_window_cycles)
         self._thread: threading.Thread | None = None
         self._running = False
+        self._looping = False
         self._ready = threading.Event()
         self.realtime_report: tuple[str, ...] = ()
         """One line per real-time setting: applied, or why not. Filled by :meth:`start`."""
@@ -164,11 +165,13 @@ class CyclicTask:
 
     @property
     def running(self) -> bool:
-        """True from :meth:`start` until the loop ends (stop, or an error in the step)."""
-        return self._thread is not None and self._thread.is_alive()
+        """True from :meth:`start` (or :meth:`run`) until the loop ends (stop, or an error in
+        the step)."""
+        return self._thread is not None and self._thread.is_alive() and self._looping
 
-    def start(self) -> None:
-        """Start the cyclic thread; returns once its real-time settings are applied.
+    def run(self) -> BaseException | None:
+        """Run the loop in the calling thread (the cycle process's only thread) until
+        :meth:`stop`; returns the exception that stopped it, if any.
 
         :raises RuntimeError: if the task is already running.
         """
@@ -176,6 +179,20 @@ class CyclicTask:
             raise RuntimeError(f"cyclic task {self.name}: already running")
         self._running = True
         self._ready.clear()
+        self._thread = threading.current_thread()
+        return self._run()
+
+    def start(self) -> None:
+        """Run the loop in a thread of its own; returns once its real-time settings are
+        applied (benchmarks and tests; the runtime uses :meth:`run`).
+
+        :raises RuntimeError: if the task is already running.
+        """
+        if self.running:
+            raise RuntimeError(f"cyclic task {self.name}: already running")
+        self._running = True
+        self._ready.clear()
+        self._looping = True
         self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
         self._thread.start()
         self._ready.wait()
@@ -257,8 +274,10 @@ class CyclicTask:
 
     # -- the cyclic thread ------------------------------------------------------------------
 
-    def _run(self) -> None:
+    def _run(self) -> BaseException | None:
         applied = None
+        self._looping = True
+        error: BaseException | None = None
         try:
             applied = apply_realtime(
                 self._realtime, thread_name=self.name, switch_interval_s=self._switch_interval_s
@@ -267,6 +286,7 @@ class CyclicTask:
             self._ready.set()
             self._loop()
         except Exception as exc:
+            error = exc
             self._running = False
             logger.exception("cyclic task %s: stopped by an exception in its cycle", self.name)
             if self._on_error is not None:
@@ -275,10 +295,12 @@ class CyclicTask:
                 except Exception:
                     logger.exception("cyclic task %s: on_error raised", self.name)
         finally:
+            self._looping = False
             self._ready.set()
             self._gc.restore()
             if applied is not None:
                 applied.restore()
+        return error
 
     def _wait_until(self, deadline_s: float) -> float:
         """Sleep to ``spin`` before ``deadline_s``, spin to it; return the wake time."""

@@ -112,6 +112,8 @@ class AxisStatus:
     """CiA 402 state (drives.cia402.State value), -1 when the statusword matched none."""
     following_error_mm: float
     """Actual position minus the target given for that instant (see the register map)."""
+    peak_following_error_mm: float = 0.0
+    """Largest |following error| since the last START (or statistics reset)."""
     statusword: int = 0
     """Raw CiA 402 statusword 0x6041 of the last feedback."""
     boot_phase: int = 0

@@ -1,8 +1,9 @@
-"""Drives without a bus, for testing the machine logic cycle by cycle.
+"""Drives without a bus, for testing the cycle and the machine period by period.
 
-Each axis steps one CiA 402 transition per cycle toward what was requested, follows its target
-exactly one cycle late, and can be given a fault. Feedback records are the master's own
-:class:`drives.master.AxisFeedback`.
+The per-period API of the CiA-402 master (:class:`runtime.cycle.cycle.CycleDrives`) with ideal
+drives: each axis steps one CiA 402 transition per period toward what was requested, follows
+its target one period late (the target sent with a SYNC is reached by the next), and can be
+given a fault, which is reported once as an event and stays latched until a fault reset.
 """
 
 from __future__ import annotations
@@ -11,8 +12,28 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from drives.cia402 import State
-from drives.master import AxisFeedback
-from drives.monitor import AxisFault, FaultKind
+from drives.monitor import FaultKind
+
+
+@dataclass(frozen=True)
+class FakeFault:
+    axis: str
+    node_id: int
+    kind: FaultKind
+    emcy_code: int | None
+    text: str
+
+
+@dataclass(frozen=True)
+class FakeFeedback:
+    axis: str
+    node_id: int
+    state: State | None
+    statusword: int
+    boot_phase: int
+    position_mm: float
+    following_error_mm: float
+    fault: FakeFault | None
 
 
 @dataclass
@@ -22,19 +43,36 @@ class FakeAxis:
     state: State = State.SWITCH_ON_DISABLED
     position_mm: float = 0.0
     target_mm: float = 0.0
+    sent_mm: float = 0.0
     request: str = "disable"
-    fault: AxisFault | None = None
+    fault: FakeFault | None = None
 
 
 class FakeDrives:
-    """The cyclic API of :class:`drives.master.Cia402Master`, with ideal drives."""
+    """Ideal drives behind the master's per-period API; see the module docstring."""
 
     def __init__(self, names: Sequence[str] = ("X", "Y", "Z")) -> None:
         self.axes = [FakeAxis(name, i + 1) for i, name in enumerate(names)]
         self.requests: list[str] = []
-        self.exchanges = 0
+        self.periods = 0
+        self.started = False
+        self.shutting_down = False
+        self._events: list[FakeFault] = []
 
-    # requests
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.started = True
+
+    def begin_shutdown(self) -> None:
+        self.shutting_down = True
+
+    @property
+    def shutdown_done(self) -> bool:
+        return self.shutting_down and all(a.state is not State.OPERATION_ENABLED for a in self.axes)
+
+    # -- requests ----------------------------------------------------------------------------
+
     def request_enable(self) -> None:
         self._request("enable")
 
@@ -49,57 +87,65 @@ class FakeDrives:
         for axis in self.axes:
             if axis.state is State.FAULT:
                 axis.state = State.SWITCH_ON_DISABLED
-                axis.fault = None
+            axis.fault = None
 
     def _request(self, what: str) -> None:
         self.requests.append(what)
         for axis in self.axes:
             axis.request = what
 
-    def recover(self) -> tuple[str, ...]:
-        self.requests.append("recover")
-        return ()
+    # -- faults ------------------------------------------------------------------------------
 
-    # faults
-    def inject_fault(self, index: int, *, emcy_code: int = 0x4210, text: str = "over-temperature"):
+    def inject_fault(
+        self, index: int, *, emcy_code: int = 0x4210, text: str = "EMCY 0x4210 over-temperature"
+    ) -> None:
         axis = self.axes[index]
         axis.state = State.FAULT
-        axis.fault = AxisFault(axis.name, axis.node_id, FaultKind.EMCY, emcy_code, text)
+        axis.fault = FakeFault(axis.name, axis.node_id, FaultKind.EMCY, emcy_code, text)
+        self._events.append(axis.fault)
 
-    # cycle
-    def read_feedback(self) -> tuple[AxisFeedback, ...]:
+    # -- the period --------------------------------------------------------------------------
+
+    def transmit_period(self) -> None:
+        self.periods += 1
+        for axis in self.axes:
+            if axis.state is State.OPERATION_ENABLED:
+                axis.position_mm = axis.sent_mm
+            axis.sent_mm = axis.target_mm
+            axis.state = _next_state(axis)
+
+    def receive(self, now_s: float) -> None:
+        pass
+
+    def update(self, now_s: float) -> tuple[FakeFeedback, ...]:
         return tuple(
-            AxisFeedback(
+            FakeFeedback(
                 axis=a.name,
                 node_id=a.node_id,
                 state=a.state,
                 statusword=0,
-                position_counts=round(a.position_mm * 1000),
+                boot_phase=4,
                 position_mm=a.position_mm,
-                commanded_mm=a.target_mm,
-                following_error_mm=a.position_mm - a.target_mm,
-                feedback_age_cycles=0,
-                heartbeat_age_s=0.0,
+                following_error_mm=(
+                    a.position_mm - a.sent_mm if a.state is State.OPERATION_ENABLED else 0.0
+                ),
                 fault=a.fault,
             )
             for a in self.axes
         )
 
+    def take_fault_events(self) -> list[FakeFault]:
+        events, self._events = self._events, []
+        return events
+
     def write_targets(self, positions_mm: Sequence[float | None] | None) -> None:
         if positions_mm is None:
             return
         for axis, target in zip(self.axes, positions_mm, strict=True):
-            if target is not None:
-                axis.target_mm = target
-
-    def exchange(self) -> None:
-        self.exchanges += 1
-        for axis in self.axes:
-            if axis.state is State.OPERATION_ENABLED:
-                axis.position_mm = axis.target_mm
-            else:
+            if axis.state is not State.OPERATION_ENABLED:
                 axis.target_mm = axis.position_mm
-            axis.state = _next_state(axis)
+            elif target is not None:
+                axis.target_mm = target
 
 
 def _next_state(axis: FakeAxis) -> State:

@@ -1,0 +1,483 @@
+"""The cycle's side of the planned setpoints: ask for plans, follow their rows, brake on them.
+
+The planner process writes setpoint rows into the shared rings (:mod:`runtime.shared`); each
+period the cycle takes the next row of the job it follows (:meth:`SetpointFeed.take`). Changes of
+plan keep the stream smooth:
+
+- A job (start, resume, the next program) is asked for with :meth:`SetpointFeed.follow`; the
+  planner offers its rows in the ring the cycle does not read, from row 0, and the motion starts
+  once :attr:`SetpointFeed.start_lead_periods` rows are there (or the whole job is).
+- A feed-override change (:meth:`SetpointFeed.change_override`) is planned by the planner from a
+  row a little ahead of the cycle and offered in the other ring from the row after it; the cycle
+  accepts the offer if it has not reached that row yet and switches rings there. Refused offers
+  are made again further ahead.
+- Hold, stop and fault stops brake at once, here in the cycle, with the closed-form jerk-limited
+  :class:`planner.braking.BrakingProfile` from the current feed and acceleration, along the
+  polyline of the rows already planned ahead. A jerk-limited stop never travels farther in a
+  given time than any plan with the same limits, so those rows always reach past the stopping
+  point; positions between two rows are interpolated on their chord, whose distance from the
+  curve the chord-error limit bounds (eq. (3)). So no planner is needed to stop, and a dead or
+  late planner never makes the path jump.
+- Underrun: while following a plan, the rows planned ahead must always cover the braking time
+  from the current feed and acceleration plus :data:`UNDERRUN_MARGIN_PERIODS`; when they no longer
+  do (the planner fell behind), :meth:`take` reports UNDERRUN once, and the machine stops on the
+  rows it still has.
+
+Units: mm, mm/s, mm/s², periods. Threading: the cycle process's single thread; every call is
+O(1) (a braking step advances a cursor over rows it passes once). Nothing here blocks or
+allocates beyond small records.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+from planner.braking import BrakingProfile
+from runtime.shared import (
+    CycleReport,
+    PlannerReport,
+    PlanRequest,
+    PlanRequestKind,
+    RingOffer,
+    RowFlag,
+    SegmentSpec,
+    SetpointRing,
+    SharedState,
+)
+
+#: Rows beyond the braking time the planner must keep ahead while moving.
+UNDERRUN_MARGIN_PERIODS = 2
+
+
+class FeedMode(Enum):
+    """What the feed is doing."""
+
+    IDLE = "idle"
+    """At rest; no plan is being followed."""
+    STARTING = "starting"
+    """A job was asked for; waiting for its first rows (the setpoint stays put)."""
+    PLANNED = "planned"
+    """Following planned rows."""
+    BRAKING = "braking"
+    """Braking to rest along the planned rows."""
+
+
+class FeedEvent(Enum):
+    """What happened in this period, for the machine to act on."""
+
+    NONE = "none"
+    FINISHED = "finished"
+    """The job's last row was taken: at rest at the end of its last segment."""
+    STOPPED = "stopped"
+    """Braking reached rest on the path."""
+    UNDERRUN = "underrun"
+    """Too few rows ahead to go on (the planner fell behind); see :attr:`SetpointFeed.problem`."""
+    PLANNER_FAILED = "planner failed"
+    """The planner could not plan the job; see :attr:`SetpointFeed.problem`."""
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """The setpoint of one period."""
+
+    position_mm: tuple[float, ...]
+    s_mm: float = 0.0
+    """Arc length along the current segment."""
+    feed_mm_s: float = 0.0
+    accel_mm_s2: float = 0.0
+    segment: int = -1
+    """Index of the job's segment (-1: not on a job's path)."""
+
+
+@dataclass(frozen=True)
+class JobStart:
+    """Where a job starts: a segment index and the motion state on it."""
+
+    segment: int = 0
+    s_mm: float = 0.0
+    v_mm_s: float = 0.0
+    a_mm_s2: float = 0.0
+
+
+class SetpointFeed:
+    """Planned setpoints for the cycle; see the module docstring.
+
+    :param shared: the runtime's shared memory (rings, planner requests and reports).
+    :param period_s: the cycle period [s].
+    :param amax_mm_s2, jmax_mm_s3: the path's braking limits.
+    """
+
+    #: Motion starts once this many rows are planned (or the whole job is): a head start that
+    #: lets the planner fall behind for a while without the rows running short.
+    start_lead_periods = 50
+
+    def __init__(
+        self, shared: SharedState, *, period_s: float, amax_mm_s2: float, jmax_mm_s3: float
+    ) -> None:
+        self._shared = shared
+        self._rings = shared.rings
+        self._period_s = period_s
+        self._amax = amax_mm_s2
+        self._jmax = jmax_mm_s3
+        self.mode = FeedMode.IDLE
+        self.current = Setpoint(())
+        self.problem = ""
+        """Why the last UNDERRUN or PLANNER_FAILED happened."""
+        self._segments: tuple[SegmentSpec, ...] = ()
+        self._dimension = 0
+        self._first_offer_taken = False
+        self._job = 0
+        self._request_seq = 0
+        self._override_percent = 100.0
+        self._ring = 0
+        self._next_row = 0
+        self._switch: RingOffer | None = None
+        """An accepted offer whose row the cycle has not reached yet."""
+        self._answered = 0
+        self._accepted = False
+        self._underrun_reported = False
+        self._failure_seen = 0
+        # Braking.
+        self._braking: BrakingProfile | None = None
+        self._braking_s0 = 0.0
+        self._braking_t_s = 0.0
+        self._cursor = 0
+        self._hold_row = -1
+
+    # -- requests --------------------------------------------------------------------------
+
+    @property
+    def job(self) -> int:
+        """The job followed or waited for (0: none yet)."""
+        return self._job
+
+    def follow(
+        self, segments: tuple[SegmentSpec, ...], start: JobStart, override_percent: float
+    ) -> None:
+        """Ask for a job through ``segments`` from ``start`` and follow it once planned.
+
+        Until its first rows come the setpoint stays where it is (mode STARTING).
+        """
+        self._job += 1
+        self._segments = segments
+        self._dimension = _dimension(segments)
+        self._first_offer_taken = False
+        self._override_percent = override_percent
+        self._switch = None
+        self._underrun_reported = False
+        self._post(
+            PlanRequestKind.FOLLOW,
+            segments=segments,
+            start_segment=start.segment,
+            start_s_mm=start.s_mm,
+            start_v_mm_s=start.v_mm_s,
+            start_a_mm_s2=start.a_mm_s2,
+        )
+        self.mode = FeedMode.STARTING
+
+    def change_override(self, override_percent: float) -> None:
+        """Re-plan the rest of the job with a new feed override (> 0), spliced ahead."""
+        self._override_percent = override_percent
+        if self.mode is FeedMode.STARTING:
+            self.follow(self._segments, self._start_of_job(), override_percent)
+        elif self.mode is FeedMode.PLANNED:
+            self._post(PlanRequestKind.CHANGE_LIMITS)
+
+    def brake(self) -> None:
+        """Brake to rest along the planned rows from the current feed and acceleration, now.
+
+        Already braking: the stop in progress is the quickest one, it goes on.
+        """
+        if self.mode is FeedMode.BRAKING:
+            return
+        self._cancel_job()
+        now = self.current
+        self.mode = FeedMode.BRAKING
+        if self._hold_row < 0 or (now.feed_mm_s <= 0.0 and now.accel_mm_s2 <= 0.0):
+            self._braking = None  # nothing to brake: at rest next period
+            return
+        self._braking = BrakingProfile.from_state(
+            v0_mm_s=now.feed_mm_s,
+            a0_mm_s2=now.accel_mm_s2,
+            amax_mm_s2=self._amax,
+            jmax_mm_s3=self._jmax,
+        )
+        self._braking_s0 = now.s_mm
+        self._braking_t_s = 0.0
+        self._cursor = self._hold_row
+
+    def rest_at(self, position_mm: tuple[float, ...]) -> None:
+        """Forget any plan and rest at ``position_mm`` (e.g. the drives' actual position)."""
+        self._cancel_job()
+        self._braking = None
+        self._hold_row = -1
+        self.mode = FeedMode.IDLE
+        self.current = Setpoint(tuple(position_mm))
+        self._publish()
+
+    def remaining(self) -> tuple[tuple[SegmentSpec, ...], JobStart] | None:
+        """The rest of the last job from where the setpoint rests (for a resume), or None when
+        the setpoint is not on a job's path."""
+        now = self.current
+        if now.segment < 0 or not self._segments:
+            return None
+        return self._segments, JobStart(now.segment, now.s_mm)
+
+    # -- per period ------------------------------------------------------------------------
+
+    def take(self) -> FeedEvent:
+        """Advance one period; the new setpoint is :attr:`current`."""
+        event = FeedEvent.NONE
+        report = self._shared.planner_reports.latest()
+        if report is not None:
+            event = self._judge(report)
+        if event is FeedEvent.NONE:
+            if self.mode is FeedMode.BRAKING:
+                event = self._take_braking()
+            elif self.mode is FeedMode.STARTING:
+                if self._started():
+                    self.mode = FeedMode.PLANNED
+                    event = self._take_planned()
+            elif self.mode is FeedMode.PLANNED:
+                event = self._take_planned()
+        self._publish()
+        return event
+
+    @property
+    def rows_ahead(self) -> int:
+        """Planned rows not yet taken (0 when not following a plan)."""
+        if self.mode is not FeedMode.PLANNED:
+            return 0
+        return max(0, self._available_end() - self._next_row)
+
+    # -- offers and failures -----------------------------------------------------------------
+
+    def _judge(self, report: PlannerReport) -> FeedEvent:
+        if (
+            report.failed_job == self._job
+            and self._failure_seen != self._job
+            and self.mode in (FeedMode.STARTING, FeedMode.PLANNED)
+        ):
+            self._failure_seen = self._job
+            self.problem = report.failure
+            return FeedEvent.PLANNER_FAILED
+        offer = report.offer
+        if offer is None or offer.seq <= self._answered:
+            return FeedEvent.NONE
+        self._answered = offer.seq
+        self._accepted = self._acceptable(offer)
+        if self._accepted:
+            if self.mode is FeedMode.STARTING:
+                self._first_offer_taken = True
+                self._ring = offer.ring
+                self._next_row = 0
+            else:
+                self._switch = offer
+        return FeedEvent.NONE
+
+    def _acceptable(self, offer: RingOffer) -> bool:
+        if offer.job != self._job or offer.ring not in (0, 1):
+            return False
+        if self.mode is FeedMode.STARTING:
+            return offer.at_row == 0 and not self._first_offer_taken
+        return (
+            self.mode is FeedMode.PLANNED
+            and offer.ring != self._ring
+            and self._switch is None
+            and offer.at_row >= self._next_row
+        )
+
+    # -- following ---------------------------------------------------------------------------
+
+    def _ring_of(self, row: int) -> SetpointRing:
+        switch = self._switch
+        if switch is not None and row >= switch.at_row:
+            return self._rings[switch.ring]
+        return self._rings[self._ring]
+
+    def _available_end(self) -> int:
+        switch = self._switch
+        if switch is not None:
+            return self._rings[switch.ring].write_count
+        return self._rings[self._ring].write_count
+
+    def _job_complete(self) -> bool:
+        end = self._available_end()
+        if end <= 0:
+            return False
+        ring = self._ring_of(end - 1)
+        return bool(ring.flags[ring.slot(end - 1)] & RowFlag.LAST_OF_JOB)
+
+    def _started(self) -> bool:
+        if not self._first_offer_taken:
+            return False
+        return self._available_end() >= self.start_lead_periods or self._job_complete()
+
+    def _take_planned(self) -> FeedEvent:
+        row = self._next_row
+        if row >= self._available_end():
+            self.problem = "planner behind: no setpoint planned for this period"
+            return self._underrun()
+        switch = self._switch
+        if switch is not None and row >= switch.at_row:
+            self._ring = switch.ring
+            self._switch = None
+        ring = self._rings[self._ring]
+        self._set_current(ring, row)
+        self._hold_row = row
+        self._next_row = row + 1
+        if ring.flags[ring.slot(row)] & RowFlag.LAST_OF_JOB:
+            self._cancel_job()
+            self.mode = FeedMode.IDLE
+            return FeedEvent.FINISHED
+        return self._check_underrun()
+
+    def _check_underrun(self) -> FeedEvent:
+        if self._underrun_reported or self._job_complete():
+            return FeedEvent.NONE
+        now = self.current
+        braking = BrakingProfile.from_state(
+            v0_mm_s=now.feed_mm_s,
+            a0_mm_s2=now.accel_mm_s2,
+            amax_mm_s2=self._amax,
+            jmax_mm_s3=self._jmax,
+        )
+        needed = math.ceil(braking.duration_s / self._period_s) + UNDERRUN_MARGIN_PERIODS
+        ahead = self._available_end() - self._next_row
+        if ahead >= needed:
+            return FeedEvent.NONE
+        self.problem = (
+            f"planner behind: {ahead} setpoints ({ahead * self._period_s * 1000:.0f} ms) planned "
+            f"ahead at {now.feed_mm_s:.1f} mm/s, braking needs {needed}"
+        )
+        return self._underrun()
+
+    def _underrun(self) -> FeedEvent:
+        self._underrun_reported = True
+        return FeedEvent.UNDERRUN
+
+    def _set_current(self, ring: SetpointRing, row: int) -> None:
+        slot = ring.slot(row)
+        dimension = self._dimension
+        self.current = Setpoint(
+            tuple(ring.position_mm[slot, :dimension].tolist()),
+            float(ring.s_mm[slot]),
+            float(ring.feed_mm_s[slot]),
+            float(ring.accel_mm_s2[slot]),
+            int(ring.segment[slot]),
+        )
+
+    # -- braking -----------------------------------------------------------------------------
+
+    def _take_braking(self) -> FeedEvent:
+        profile = self._braking
+        if profile is None:
+            self.mode = FeedMode.IDLE
+            self.current = Setpoint(self.current.position_mm, self.current.s_mm, 0.0, 0.0, -1)
+            return FeedEvent.STOPPED
+        self._braking_t_s += self._period_s
+        distance, feed, accel = profile.sample(self._braking_t_s)
+        s = self._braking_s0 + distance
+        segment = self.current.segment
+        end = self._available_end()
+        cursor = self._cursor
+        while cursor + 1 < end:
+            ring = self._ring_of(cursor + 1)
+            slot = ring.slot(cursor + 1)
+            if int(ring.segment[slot]) != segment or float(ring.s_mm[slot]) > s:
+                break
+            cursor += 1
+        self._cursor = cursor
+        position, s = self._on_polyline(cursor, s, segment, end)
+        at_rest = self._braking_t_s >= profile.duration_s
+        if at_rest:
+            feed, accel = 0.0, 0.0
+        self.current = Setpoint(position, s, feed, accel, segment)
+        if not at_rest:
+            return FeedEvent.NONE
+        self._braking = None
+        self.mode = FeedMode.IDLE
+        return FeedEvent.STOPPED
+
+    def _on_polyline(
+        self, row: int, s: float, segment: int, end: int
+    ) -> tuple[tuple[float, ...], float]:
+        """The point at arc length ``s`` between row ``row`` and the next one of ``segment``
+        (the chord between them), clamped to the last row available."""
+        ring = self._ring_of(row)
+        slot = ring.slot(row)
+        dimension = self._dimension
+        here = ring.position_mm[slot, :dimension]
+        s_here = float(ring.s_mm[slot])
+        if row + 1 < end:
+            after = self._ring_of(row + 1)
+            next_slot = after.slot(row + 1)
+            s_next = float(after.s_mm[next_slot])
+            if int(after.segment[next_slot]) == segment and s_next > s_here:
+                fraction = min(1.0, max(0.0, (s - s_here) / (s_next - s_here)))
+                there = after.position_mm[next_slot, :dimension]
+                return tuple((here + fraction * (there - here)).tolist()), max(
+                    s_here, min(s, s_next)
+                )
+        return tuple(here.tolist()), s_here
+
+    # -- bookkeeping -------------------------------------------------------------------------
+
+    def _start_of_job(self) -> JobStart:
+        request = self._shared.planner_requests.latest()
+        if request is None or request.job != self._job:
+            return JobStart()
+        return JobStart(
+            request.start_segment, request.start_s_mm, request.start_v_mm_s, request.start_a_mm_s2
+        )
+
+    def _cancel_job(self) -> None:
+        if self.mode in (FeedMode.STARTING, FeedMode.PLANNED):
+            self._post(PlanRequestKind.CANCEL)
+        self._switch = None
+
+    def _post(self, kind: PlanRequestKind, **fields: object) -> None:
+        self._request_seq += 1
+        if kind is not PlanRequestKind.FOLLOW:
+            fields.setdefault("segments", self._segments)
+        self._shared.planner_requests.post(
+            PlanRequest(
+                seq=self._request_seq,
+                kind=kind,
+                job=self._job,
+                override_percent=self._override_percent,
+                **fields,  # type: ignore[arg-type]
+            )
+        )
+
+    def _publish(self) -> None:
+        """Tell the planner where the cycle reads and which rows it may still need."""
+        following = self.mode in (FeedMode.PLANNED, FeedMode.STARTING, FeedMode.BRAKING)
+        job = self._job if following else 0
+        held = self._cursor if self.mode is FeedMode.BRAKING else max(0, self._next_row - 1)
+        for index, ring in enumerate(self._rings):
+            in_use = following and (
+                index == self._ring or (self._switch is not None and index == self._switch.ring)
+            )
+            ring.hold_from(job if in_use else -1, held)
+        self._shared.cycle_reports.publish(
+            CycleReport(
+                offer_answered=self._answered,
+                offer_accepted=self._accepted,
+                job=job,
+                ring=self._ring,
+                next_row=self._next_row,
+            )
+        )
+
+
+def _dimension(segments: tuple[SegmentSpec, ...]) -> int:
+    """Coordinates of a job's points (all its segments share them)."""
+    for segment in segments:
+        if segment.from_mm:
+            return len(segment.from_mm)
+        if segment.program is not None:
+            return segment.program.dimension
+    return 0

@@ -1,0 +1,386 @@
+"""The planner process's work: plan the jobs the cycle asks for into the shared setpoint rings.
+
+A job is up to two segments (the straight approach to a program's start, then the program's
+curve), each planned from rest at its start (or from the cycle's motion state for a resume) by
+:func:`planner.stream.stream_setpoints`. :meth:`PlannerService.poll` does one unit of work and
+returns, so the process loop stays responsive to the cycle's requests:
+
+- a new request (:class:`runtime.shared.PlanRequest`): FOLLOW starts the job in the ring the
+  cycle does not read and offers it from row 0; CANCEL drops it; CHANGE_LIMITS marks a splice;
+- a splice: the rows are re-planned with the new override from the state of a row
+  :attr:`PlannerService.splice_lead_periods` ahead of the cycle (the ring rows carry feed and
+  acceleration), written into the other ring from the next row on, and offered; the cycle
+  accepts it if it has not reached that row, else it is made again twice as far ahead;
+- otherwise the next block of the job, up to :attr:`PlannerService.buffer_high_periods` rows
+  ahead of the cycle.
+
+Failures (a program file gone, a curve the planner rejects) are reported for the job; the cycle
+turns them into a fault and stops on the rows it has.
+
+Threading: the planner process's main thread; it never blocks on the cycle (it reads what the
+cycle published and tries again next poll).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner.errors import PlannerError
+from planner.nurbs import NurbsCurve
+from planner.stream import Path, stream_setpoints
+from planner.types import Limits, MotionState, SetpointBlock
+from runtime.config import MachineConfig
+from runtime.curves import limits_for_curve, planner_limits
+from runtime.programs import load_program_curve
+from runtime.shared import (
+    PlannerReport,
+    PlanRequest,
+    PlanRequestKind,
+    RingOffer,
+    RowFlag,
+    SegmentKind,
+    SegmentSpec,
+    SetpointRing,
+    SharedState,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Programs whose planning geometry is kept for re-plans (resume, override, restart).
+PATH_CACHE_SIZE = 4
+
+
+@dataclass(eq=False)
+class _Job:
+    """A job being planned into ``ring``."""
+
+    job: int
+    paths: tuple[Path, ...]
+    limits: tuple[Limits, ...]
+    """Per segment: the base limits with the job's override."""
+    ring: int
+    segment: int
+    blocks: Iterator[SetpointBlock] | None = None
+    done: bool = False
+    offer: RingOffer | None = None
+    """The offer waiting for the cycle's answer."""
+    live: bool = False
+    """The cycle accepted the job (its first offer)."""
+    splice_override: float | None = None
+    splice_lead: int = 0
+    pending_state: tuple[int, MotionState] | None = None
+    """Where the next stream of the job starts (segment, state) when none is open."""
+    override_percent: float = 100.0
+    candidate: _Job | None = None
+    """A splice offered to the cycle: the re-planned rest of the job, in the other ring."""
+
+
+class PlannerService:
+    """Plans the cycle's jobs into the shared rings; see the module docstring."""
+
+    #: Plan this many periods ahead of the cycle before waiting.
+    buffer_high_periods = 500
+    #: A splice is first tried this many periods ahead of the cycle's next row.
+    splice_lead_periods = 8
+    #: Rows per planned block (the first block of a job or splice comes as soon as it is planned).
+    block_periods = 64
+
+    def __init__(self, shared: SharedState, config: MachineConfig) -> None:
+        self._shared = shared
+        self._config = config
+        self._period_s = config.cycle.period_s
+        self._limits = planner_limits(config)
+        self._lookahead = config.planner.lookahead
+        self._update = config.planner.update
+        self._paths: OrderedDict[int, Path] = OrderedDict()
+        self._job: _Job | None = None
+        self._seen = 0
+        self._offer_seq = 0
+        self._report = PlannerReport()
+        self._shared.planner_reports.publish(self._report)
+
+    # -- the loop ----------------------------------------------------------------------------
+
+    def poll(self) -> bool:
+        """One unit of work; False when there was nothing to do (the caller may sleep briefly)."""
+        self._shared.planner_reports.heartbeat.value += 1
+        request = self._shared.planner_requests.latest()
+        if request is not None and request.seq != self._seen:
+            self._seen = request.seq
+            self._handle(request)
+            self._publish()
+            return True
+        job = self._job
+        if job is None:
+            return False
+        try:
+            if job.offer is not None:
+                return self._await_answer(job)
+            if job.splice_override is not None and self._cycle_reads(job.ring):
+                return self._splice(job)
+            return self._extend(job)
+        except PlannerError as exc:
+            self._fail(job, f"planner: {exc}")
+        except Exception as exc:
+            logger.exception("planner: job %d failed", job.job)
+            self._fail(job, f"planner failed: {exc!r}")
+        return True
+
+    # -- requests ----------------------------------------------------------------------------
+
+    def _handle(self, request: PlanRequest) -> None:
+        self._report = PlannerReport(
+            handled_request=request.seq,
+            failed_job=self._report.failed_job,
+            failure=self._report.failure,
+            offer=self._report.offer,
+        )
+        job = self._job
+        if request.kind is PlanRequestKind.FOLLOW:
+            self._job = None
+            try:
+                self._job = self._start(request)
+            except PlannerError as exc:
+                self._fail_request(request.job, f"planner: {exc}")
+            except Exception as exc:
+                logger.exception("planner: job %d could not start", request.job)
+                self._fail_request(request.job, f"planner failed: {exc!r}")
+        elif job is not None and job.job == request.job:
+            if request.kind is PlanRequestKind.CANCEL:
+                self._job = None
+            elif request.kind is PlanRequestKind.CHANGE_LIMITS:
+                job.splice_override = request.override_percent
+                job.splice_lead = self.splice_lead_periods
+
+    def _start(self, request: PlanRequest) -> _Job:
+        paths = tuple(self._path(segment) for segment in request.segments)
+        limits = tuple(self._limits_for(path, request.override_percent) for path in paths)
+        ring_index = 1 - self._shared.cycle_reports.latest().ring
+        ring = self._shared.rings[ring_index]
+        ring.begin(request.job, 0)
+        job = _Job(
+            job=request.job,
+            paths=paths,
+            limits=limits,
+            ring=ring_index,
+            segment=request.start_segment,
+            override_percent=request.override_percent,
+        )
+        job.pending_state = (
+            request.start_segment,
+            MotionState(request.start_s_mm, request.start_v_mm_s, request.start_a_mm_s2),
+        )
+        self._write_block(job, ring)
+        self._offer(job, ring_index, 0)
+        return job
+
+    def _path(self, segment: SegmentSpec) -> Path:
+        if segment.kind is SegmentKind.LINE:
+            curve = NurbsCurve.from_arrays(1, [segment.from_mm, segment.to_mm], [0, 0, 1, 1])
+            return self._make_path(curve)
+        program = segment.program
+        if program is None:
+            raise ValueError("a program segment without its program")
+        path = self._paths.get(program.program_id)
+        if path is None:
+            path = self._make_path(load_program_curve(program))
+            self._paths[program.program_id] = path
+            while len(self._paths) > PATH_CACHE_SIZE:
+                self._paths.popitem(last=False)
+        self._paths.move_to_end(program.program_id)
+        return path
+
+    def _make_path(self, curve: NurbsCurve) -> Path:
+        return Path(curve, limits_for_curve(self._limits, curve.dimension), self._period_s)
+
+    def _limits_for(self, path: Path, override_percent: float) -> Limits:
+        limits = limits_for_curve(self._limits, path.curve.dimension)
+        return limits.with_feed_override(override_percent / 100.0)
+
+    # -- offers ------------------------------------------------------------------------------
+
+    def _offer(self, job: _Job, ring: int, at_row: int) -> None:
+        self._offer_seq += 1
+        job.offer = RingOffer(self._offer_seq, ring, job.job, at_row)
+        self._report = PlannerReport(
+            handled_request=self._report.handled_request,
+            failed_job=self._report.failed_job,
+            failure=self._report.failure,
+            offer=job.offer,
+        )
+        self._publish()
+
+    def _await_answer(self, job: _Job) -> bool:
+        offer = job.offer
+        assert offer is not None
+        answer = self._shared.cycle_reports.latest()
+        if answer.offer_answered < offer.seq:
+            return False
+        job.offer = None
+        if not answer.offer_accepted:
+            if not job.live:
+                self._job = None  # the cycle moved on to another job
+            else:
+                job.splice_lead *= 2  # the cycle got there first: try further ahead
+                job.candidate = None
+            return True
+        job.live = True
+        job.ring = offer.ring
+        if offer.at_row > 0:
+            self._commit_splice(job)
+        return True
+
+    def _cycle_reads(self, ring: int) -> bool:
+        """Whether the cycle has switched to ``ring`` (so the other ring is free)."""
+        return self._shared.cycle_reports.latest().ring == ring
+
+    # -- extending ---------------------------------------------------------------------------
+
+    def _extend(self, job: _Job) -> bool:
+        if job.done or not job.live:
+            return False
+        ring = self._shared.rings[job.ring]
+        cycle = self._shared.cycle_reports.latest()
+        ahead = ring.write_count - (cycle.next_row if cycle.job == job.job else 0)
+        if ahead >= self.buffer_high_periods or ring.room() < self.block_periods:
+            return False
+        self._write_block(job, ring)
+        return True
+
+    def _write_block(self, job: _Job, ring: SetpointRing) -> None:
+        """Plan the job's next block and append it to ``ring`` (one block per call)."""
+        if job.blocks is None:
+            assert job.pending_state is not None
+            segment, state = job.pending_state
+            job.segment = segment
+            job.blocks = self._stream(job, segment, state)
+            job.pending_state = None
+        block = next(job.blocks, None)
+        if block is None:
+            _segment_finished(job)
+            return
+        self._append(job, ring, block)
+
+    def _stream(self, job: _Job, segment: int, state: MotionState) -> Iterator[SetpointBlock]:
+        return stream_setpoints(
+            job.paths[segment],
+            job.limits[segment],
+            self._period_s,
+            start=state,
+            lookahead=self._lookahead,
+            update=self._update,
+            block_periods=self.block_periods,
+        )
+
+    def _append(self, job: _Job, ring: SetpointRing, block: SetpointBlock) -> None:
+        flags = np.zeros(len(block), dtype=np.int32)
+        if block.last:
+            flags[-1] = RowFlag.LAST_OF_SEGMENT
+            if job.segment == len(job.paths) - 1:
+                flags[-1] |= RowFlag.LAST_OF_JOB
+        ring.append(
+            s_mm=block.s_mm,
+            feed_mm_s=block.feed_mm_s,
+            accel_mm_s2=block.accel_mm_s2,
+            position_mm=block.position_mm,
+            segment=job.segment,
+            flags=flags,
+        )
+        if block.last:
+            _segment_finished(job)
+
+    # -- splicing ----------------------------------------------------------------------------
+
+    def _splice(self, job: _Job) -> bool:
+        """Re-plan from a row ahead of the cycle with the new override, into the other ring."""
+        ring = self._shared.rings[job.ring]
+        cycle = self._shared.cycle_reports.latest()
+        row = cycle.next_row + job.splice_lead
+        last_planned = ring.write_count - 1
+        if row > last_planned or self._row_ends_segment(ring, row):
+            if job.done and row > last_planned:
+                job.splice_override = None  # the rest is the braking to the end: nothing to re-plan
+                return True
+            return self._extend_for_splice(job, ring)
+        override = job.splice_override
+        assert override is not None
+        slot = ring.slot(row)
+        segment = int(ring.segment[slot])
+        state = MotionState(
+            float(ring.s_mm[slot]), float(ring.feed_mm_s[slot]), float(ring.accel_mm_s2[slot])
+        )
+        limits = tuple(self._limits_for(path, override) for path in job.paths)
+        other_index = 1 - job.ring
+        other = self._shared.rings[other_index]
+        other.begin(job.job, row + 1)
+        spliced = _Job(
+            job=job.job,
+            paths=job.paths,
+            limits=limits,
+            ring=other_index,
+            segment=segment,
+            live=True,
+            override_percent=override,
+        )
+        spliced.pending_state = (segment, state)
+        self._write_block(spliced, other)
+        job.candidate = spliced
+        self._offer(job, other_index, row + 1)
+        return True
+
+    def _extend_for_splice(self, job: _Job, ring: SetpointRing) -> bool:
+        """The splice row is not planned yet: the old plan goes on meanwhile."""
+        if job.done or ring.room() < self.block_periods:
+            return False
+        self._write_block(job, ring)
+        return True
+
+    @staticmethod
+    def _row_ends_segment(ring: SetpointRing, row: int) -> bool:
+        return bool(ring.flags[ring.slot(row)] & RowFlag.LAST_OF_SEGMENT)
+
+    def _commit_splice(self, job: _Job) -> None:
+        spliced = job.candidate
+        assert spliced is not None
+        job.paths, job.limits = spliced.paths, spliced.limits
+        job.segment, job.blocks, job.done = spliced.segment, spliced.blocks, spliced.done
+        job.pending_state = spliced.pending_state
+        job.override_percent = spliced.override_percent
+        if job.splice_override == spliced.override_percent:
+            job.splice_override = None
+        job.candidate = None
+
+    # -- reporting ---------------------------------------------------------------------------
+
+    def _fail(self, job: _Job, reason: str) -> None:
+        if self._job is job:
+            self._job = None
+        self._fail_request(job.job, reason)
+
+    def _fail_request(self, job: int, reason: str) -> None:
+        logger.error("job %d: %s", job, reason)
+        self._report = PlannerReport(
+            handled_request=self._report.handled_request,
+            failed_job=job,
+            failure=reason,
+            offer=self._report.offer,
+        )
+        self._publish()
+
+    def _publish(self) -> None:
+        self._shared.planner_reports.publish(self._report)
+
+
+def _segment_finished(job: _Job) -> None:
+    """The job's current segment is fully written: the next one starts from rest, or the job
+    is done."""
+    job.blocks = None
+    if job.segment + 1 < len(job.paths):
+        job.pending_state = (job.segment + 1, MotionState(0.0))
+    else:
+        job.done = True

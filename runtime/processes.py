@@ -1,0 +1,65 @@
+"""What every child process of the runtime does first, and the priorities of the processes.
+
+The supervisor (:mod:`runtime.supervisor`) starts the children with multiprocessing's ``spawn``
+(a fresh interpreter each: nothing inherited from the supervisor's threads). Each child:
+
+- dies with the supervisor (``PR_SET_PDEATHSIG``: SIGTERM when the supervisor ends, however);
+- ignores SIGINT: Ctrl-C on a terminal reaches the whole process group, and the supervisor alone
+  decides how the machine stops (it asks the cycle to stop on the path, disable the drives and
+  leave the bus, then ends the others);
+- takes its scheduling class: the cycle SCHED_FIFO at ``cycle.realtime.priority``; simulated
+  drives (standing for hardware that never waits for the host) just below it; the HMI server at
+  a low real-time priority, so it answers clients between the planner's computations; the
+  planner and the supervisor at the normal one. Threads a process starts later inherit its class.
+
+Linux only (prctl, sched_setscheduler); where a setting is refused, one warning says so and the
+process goes on without it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+
+logger = logging.getLogger(__name__)
+
+PR_SET_PDEATHSIG = 1
+#: Simulated drives run this far below the cycle's SCHED_FIFO priority.
+SIMULATION_PRIORITY_BELOW_CYCLE = 5
+#: The HMI server's SCHED_FIFO priority (above the planner's normal class, far below the cycle).
+HMI_PRIORITY = 10
+
+
+def prepare_child(*, parent_pid: int) -> None:
+    """Die with the supervisor and leave SIGINT to it (call first thing in a child)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent_pid:
+        # The supervisor ended before the request took effect: nothing will signal us.
+        os._exit(1)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def realtime_priority(priority: int, role: str) -> bool:
+    """SCHED_FIFO at ``priority`` for this process's calling thread (0: leave it); whether it
+    was applied."""
+    if priority <= 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, OSError) as exc:
+        logger.warning("%s: SCHED_FIFO %d refused (%s); normal scheduling", role, priority, exc)
+        return False
+    return True
+
+
+def simulation_priority(cycle_priority: int) -> int:
+    """SCHED_FIFO priority of the simulated drives (0 when the cycle has none)."""
+    return max(0, cycle_priority - SIMULATION_PRIORITY_BELOW_CYCLE) if cycle_priority else 0
+
+
+def hmi_priority(cycle_priority: int) -> int:
+    """SCHED_FIFO priority of the HMI server (0 when the cycle has none)."""
+    return min(HMI_PRIORITY, cycle_priority - 1) if cycle_priority > 1 else 0
