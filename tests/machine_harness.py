@@ -18,6 +18,7 @@ from runtime.commands import Command, CommandCode, CommandOrigin, CommandRecord,
 from runtime.config import MachineConfig, load_config
 from runtime.curves import load_curve_file
 from runtime.cycle.cycle import Cycle
+from runtime.cycle.feed import Setpoint
 from runtime.planning.service import PlannerService
 from runtime.programs import Program, ProgramStore
 from runtime.shared import SharedState
@@ -51,6 +52,8 @@ class Harness:
         self.programs = ProgramStore(store_dir)
         self.targets: list[tuple[float, ...]] = []
         """The targets the machine gave the drives, one row per period stepped."""
+        self.setpoints: list[Setpoint] = []
+        """The feed's setpoint of every period stepped."""
 
     @property
     def status(self) -> StatusSnapshot:
@@ -68,6 +71,7 @@ class Harness:
                 self.plan()
             self.cycle.step()
             self.targets.append(self.cycle.machine.targets)
+            self.setpoints.append(self.cycle.feed.current)
             self.now_s += self.period_s
 
     def plan(self) -> None:

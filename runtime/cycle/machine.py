@@ -212,8 +212,10 @@ class Machine:
         elif code is CommandCode.STOP:
             self._brake()
             self._continue = False
+            self._start_job = None
             self._enter(MachineState.STOPPING, f"stop by {by}")
         elif code is CommandCode.QUICK_STOP:
+            self._start_job = None
             self._quick_stop()
             self._enter(MachineState.STOPPING, f"quick stop by {by}")
         elif code is CommandCode.RESET:
@@ -255,6 +257,7 @@ class Machine:
         if self.state in (MachineState.MOVING, MachineState.HOLDING):
             self._brake()
             self._continue = False
+            self._start_job = None
             self._enter(MachineState.STOPPING, "stop for shutdown")
 
     def raise_fault(
@@ -434,7 +437,7 @@ class Machine:
             self.feed.change_override(percent)
 
     def _brake(self) -> None:
-        self._start_job = None
+        """Brake on the path now (a job asked for but not begun stays pending for a resume)."""
         self.feed.brake()
 
     def _quick_stop(self) -> None:

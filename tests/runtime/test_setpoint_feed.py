@@ -1,0 +1,153 @@
+"""Hold, resume, feed override and a late planner, mid-curve: the setpoint stream the cycle takes
+from the planner's rings stays on the curve and smooth.
+
+Measured on the targets the machine gives the drives each period (finite differences, as a
+drive sees them), with ideal drives, the paper's curve and limits (T = 4 ms, vmax 100 mm/s,
+amax 1000 mm/s², jmax 20000 mm/s³, chord error 1 µm). Braking follows the chords between the
+planned rows, so it too stays within the chord error of the curve.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from machine_harness import Harness
+from setpoint_checks import chord_errors, differences, realised_feed
+
+from planner.stream import Path as PlannerPath
+from runtime.commands import CommandCode, CommandResult
+from runtime.curves import limits_for_curve, planner_limits
+from runtime.programs import Program, load_program_curve
+from runtime.shared import RingOffer
+from runtime.status import MachineState, MotionPhase
+
+T = 0.004
+VMAX, AMAX, JMAX, DELTA = 100.0, 1000.0, 20000.0, 0.001
+
+
+@pytest.fixture
+def h(tmp_path: Path) -> Harness:
+    harness = Harness(tmp_path)
+    harness.program_under_test = harness.standby_with_program()
+    return harness
+
+
+def start(h: Harness, past_mm: float) -> None:
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: s.phase is MotionPhase.PROGRAM and s.path_s_mm > past_mm, 2000)
+
+
+def check_limits(positions: np.ndarray, vmax: float) -> None:
+    feed = realised_feed(positions, T)
+    accel = differences(feed, T)
+    jerk = differences(accel, T)
+    figures = (feed.max(), np.abs(accel).max(), np.abs(jerk).max())
+    assert figures[0] <= vmax * 1.001, figures
+    assert figures[1] <= AMAX * 1.02, figures
+    assert figures[2] <= JMAX * 1.05, figures
+
+
+def check_on_curve_and_end(h: Harness, program: Program) -> None:
+    """Every setpoint on the program's curve is within the chord error of it (planned rows lie
+    on it; braking rows on the chords between them), and the last one is its end point."""
+    curve = load_program_curve(program)
+    path = PlannerPath(curve, limits_for_curve(planner_limits(h.config), curve.dimension), T)
+    rows = [sp for sp in h.setpoints if sp.segment == 1]
+    s = np.array([sp.s_mm for sp in rows])
+    u = path.arc.u_of_s(s)
+    positions = np.array([sp.position_mm for sp in rows])
+    assert np.abs(curve.evaluate(u)[0] - positions).max() <= DELTA
+    assert chord_errors(curve, u, positions).max() <= DELTA * 1.01
+    assert tuple(positions[-1]) == program.end_mm
+    assert h.status.state is MachineState.STANDBY
+
+
+def test_hold_then_resume_stays_on_the_curve_and_smooth(h: Harness) -> None:
+    start(h, 60.0)
+    h.command(CommandCode.HOLD)
+    braking = h.until(lambda s: s.feed_mm_s == 0.0, 100)
+    # A jerk-limited stop from at most vmax takes at most 0.15 s (37.5 periods).
+    assert braking <= 39
+    held = h.status
+    h.period(20)
+    assert h.status.state is MachineState.HOLDING
+    assert h.status.path_s_mm == held.path_s_mm
+    h.command(CommandCode.RESUME)
+    h.until(lambda s: s.state is MachineState.STANDBY, 2000)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_hold_changes_the_setpoint_in_the_period_it_is_applied(h: Harness) -> None:
+    start(h, 60.0)
+    before = [sp.feed_mm_s for sp in h.setpoints[-3:]]
+    h.command(CommandCode.HOLD)
+    assert h.status.phase is MotionPhase.BRAKING
+    assert h.setpoints[-1].accel_mm_s2 < 0 or h.setpoints[-1].feed_mm_s < before[-1]
+
+
+@pytest.mark.parametrize("overrides", [(30.0, 150.0), (150.0, 30.0)])
+def test_override_changes_mid_curve_never_step_the_feed(
+    h: Harness, overrides: tuple[float, float]
+) -> None:
+    start(h, 20.0)
+    for percent in overrides:
+        h.command(CommandCode.SET_OVERRIDE, override_percent=percent)
+        h.period(150)
+        assert h.status.state is MachineState.MOVING
+        # After the splice and the transition, the feed obeys the new vmax.
+        recent = realised_feed(h.target_array()[-60:], T)
+        assert recent.max() <= VMAX * percent / 100 * 1.001
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array(), VMAX * max(overrides) / 100)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_a_splice_offered_too_late_is_refused_and_made_again_further_ahead(
+    h: Harness, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    start(h, 20.0)
+    stale = h.shared.cycle_reports.latest()
+    h.command(CommandCode.SET_OVERRIDE, override_percent=40.0)
+    h.period(30, plan=False)
+    # The planner plans the splice from where it last saw the cycle, 31 periods behind it.
+    monkeypatch.setattr(h.shared.cycle_reports, "latest", lambda: stale)
+    h.planner.poll()
+    h.planner.poll()
+    monkeypatch.undo()
+    offer = h.shared.planner_reports.latest().offer
+    assert isinstance(offer, RingOffer) and offer.at_row < h.shared.cycle_reports.latest().next_row
+    h.period(plan=False)
+    answer = h.shared.cycle_reports.latest()
+    assert answer.offer_answered == offer.seq and not answer.offer_accepted
+    h.period(200)
+    answer = h.shared.cycle_reports.latest()
+    assert answer.offer_answered > offer.seq and answer.offer_accepted
+    assert realised_feed(h.target_array()[-60:], T).max() <= VMAX * 0.4 * 1.001
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_override_zero_stops_on_the_path_and_a_new_override_moves_on(h: Harness) -> None:
+    start(h, 40.0)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=0.0)
+    h.until(lambda s: s.feed_mm_s == 0.0, 100)
+    h.period(10)
+    assert h.status.state is MachineState.MOVING and h.status.feed_mm_s == 0.0
+    h.command(CommandCode.SET_OVERRIDE, override_percent=80.0)
+    h.until(lambda s: s.state is MachineState.STANDBY, 3000)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_planner_failure_is_a_fault_and_a_stop_on_the_rows_planned(h: Harness) -> None:
+    program = h.program_under_test
+    Path(program.source).unlink()
+    h.planner._paths.clear()  # a fresh planner process: the program must be loaded again
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: s.state is MachineState.ERROR_STOP, 50)
+    fault = h.status.fault
+    assert fault is not None and "cannot be loaded" in fault.text
