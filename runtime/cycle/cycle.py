@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 from enum import Enum
 from typing import Protocol
 
+from drives.cia402 import State as DriveState
 from drives.errors import DriveError
 from drives.monitor import FaultKind as DriveFaultKind
 from runtime.commands import Command, CommandCode, CommandOrigin, CommandResult
@@ -50,6 +51,11 @@ COMMANDS_PER_PERIOD = 8
 #: The drives must be stopped and disabled within this time of a shutdown request, and off the
 #: bus within the drives' own shutdown.
 SHUTDOWN_TIMEOUT_S = 10.0
+
+#: Drive states with the power stage on (a drive in them is not yet disabled).
+_POWERED = frozenset(
+    {DriveState.OPERATION_ENABLED, DriveState.QUICK_STOP_ACTIVE, DriveState.SWITCHED_ON}
+)
 
 FAULT_KINDS = {
     DriveFaultKind.EMCY: FaultKind.DRIVE_FAULT,
@@ -84,7 +90,9 @@ class CycleDrives(Protocol):
 class ShutdownStep(Enum):
     NONE = "none"
     STOPPING = "stopping"
-    """Braking on the path, then disabling the drives."""
+    """Braking on the path."""
+    DISABLING = "disabling"
+    """Stepping every drive down to SWITCH ON DISABLED."""
     LEAVING = "leaving"
     """Drives disabled; the master leaves the bus (heartbeat consumers disarmed, NMT)."""
     DONE = "done"
@@ -204,7 +212,7 @@ class Cycle:
         self._supervise_planner()
         if self.watchdog.check(self.shared.hmi_activity.value, now_s, machine.moving):
             self._watchdog_fired()
-        self._progress_shutdown(now_s)
+        self._progress_shutdown(feedback, now_s)
         targets = machine.step(feedback, now_s)
         try:
             drives.write_targets(targets)
@@ -277,9 +285,9 @@ class Cycle:
             self._shutdown_since_s = self._clock()
             logger.info("shutdown: stopping on the path, then disabling the drives")
 
-    def _progress_shutdown(self, now_s: float) -> None:
+    def _progress_shutdown(self, feedback: Sequence[AxisFeedbackLike], now_s: float) -> None:
         step = self.shutdown
-        if step is ShutdownStep.NONE or step is ShutdownStep.DONE:
+        if step in (ShutdownStep.NONE, ShutdownStep.DONE):
             return
         machine = self.machine
         late = now_s - self._shutdown_since_s > SHUTDOWN_TIMEOUT_S
@@ -288,8 +296,10 @@ class Cycle:
                 return
             if machine.state is not MachineState.DISABLED:
                 machine.apply(Command(CommandCode.DISABLE, origin=CommandOrigin.SHUTDOWN))
-                if machine.state is not MachineState.DISABLED and not late:
-                    return
+            self.shutdown = ShutdownStep.DISABLING
+        elif step is ShutdownStep.DISABLING:
+            if any(fb.state in _POWERED for fb in feedback) and not late:
+                return
             self.drives.begin_shutdown()
             self.shutdown = ShutdownStep.LEAVING
         elif step is ShutdownStep.LEAVING and (self.drives.shutdown_done or late):

@@ -100,8 +100,11 @@ class PlannerService:
         self._paths: OrderedDict[int, Path] = OrderedDict()
         self._job: _Job | None = None
         self._seen = 0
-        self._offer_seq = 0
-        self._report = PlannerReport()
+        # A restarted planner goes on numbering offers after its predecessor's: the cycle
+        # ignores an offer whose number it has answered already.
+        previous = shared.planner_reports.latest() or PlannerReport()
+        self._offer_seq = previous.offer.seq if previous.offer is not None else 0
+        self._report = PlannerReport(offer=previous.offer)
         self._shared.planner_reports.publish(self._report)
 
     # -- the loop ----------------------------------------------------------------------------

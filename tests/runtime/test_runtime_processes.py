@@ -1,0 +1,161 @@
+"""The whole runtime as processes: supervisor, cycle, planner and simulated drives on the
+``local`` bus, in real time (4 ms).
+
+Limits are checked on the targets the drives received (RPDO1 frames recorded by an independent
+listener on the bus, one row per SYNC), by finite differences. Process deaths: a killed planner
+stops the machine on the path and is started again; a killed cycle ends the runtime.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+import uuid
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from bus_recorder import BusRecorder
+from machine_harness import PAPER, sim_config
+from setpoint_checks import differences, realised_feed
+
+from runtime.commands import CommandCode
+from runtime.config import MachineConfig
+from runtime.curves import load_curve_file
+from runtime.status import FaultKind, MachineState, MotionPhase
+from runtime.supervisor import CycleDied, Runtime
+
+T = 0.004
+VMAX, AMAX, JMAX = 100.0, 1000.0, 20000.0
+pytestmark = pytest.mark.slow
+
+
+def local_config() -> MachineConfig:
+    config = sim_config()
+    return replace(
+        config,
+        can=replace(config.can, interface="local", channel=f"test-{uuid.uuid4().hex[:8]}"),
+        modbus=replace(config.modbus, enabled=False),
+    )
+
+
+@pytest.fixture
+def runtime():
+    config = local_config()
+    with BusRecorder(config.can.interface, config.can.channel) as recorder:
+        runtime = Runtime(config, log_level="WARNING")
+        runtime.recorder = recorder
+        try:
+            runtime.start()
+            yield runtime
+        finally:
+            runtime.stop()
+
+
+def load_enable(runtime: Runtime):
+    program = runtime.programs.add(load_curve_file(PAPER), runtime.config, name="paper", crc32=0)
+    runtime.command(CommandCode.LOAD_CURVE, program=program)
+    runtime.command(CommandCode.ENABLE)
+    runtime.wait_for(lambda s: s.state is MachineState.STANDBY, 10.0)
+    return program
+
+
+def run_to_standby(runtime: Runtime, timeout_s: float = 20.0) -> None:
+    status = runtime.wait_for(lambda s: s.state is not MachineState.MOVING, timeout_s)
+    assert status.state is MachineState.STANDBY, status.message
+
+
+def received_targets_mm(runtime: Runtime) -> np.ndarray:
+    nodes = tuple(axis.node_id for axis in runtime.config.axes)
+    scale = np.array([axis.counts_per_mm for axis in runtime.config.axes])
+    return runtime.recorder.targets_counts(nodes) / scale
+
+
+def check_limits(positions: np.ndarray, vmax: float) -> None:
+    # Targets are whole counts (1 µm): allow the rounding in the differences.
+    feed = realised_feed(positions, T)
+    accel = differences(feed, T)
+    jerk = differences(accel, T)
+    count_mm = 0.001
+    assert feed.max() <= vmax * 1.001 + count_mm / T
+    assert np.abs(accel).max() <= AMAX * 1.02 + 2 * count_mm / T**2
+    assert np.abs(jerk).max() <= JMAX * 1.05 + 4 * count_mm / T**3
+
+
+def test_paper_curve_reaches_the_drives_exactly(runtime: Runtime) -> None:
+    program = load_enable(runtime)
+    runtime.command(CommandCode.START)
+    run_to_standby(runtime)
+    time.sleep(0.05)
+    targets = received_targets_mm(runtime)
+    assert tuple(targets[-1]) == program.end_mm
+    moving = targets[np.flatnonzero(np.any(np.diff(targets, axis=0) != 0, axis=1))[0] :]
+    check_limits(moving, VMAX)
+    status = runtime.status()
+    assert [round(a.actual_mm * 1000) for a in status.axes] == [
+        round(v * 1000) for v in program.end_mm
+    ]
+    assert status.stats.missed_periods <= runtime.config.cycle.overrun_limit
+
+
+def test_hold_and_resume_across_processes(runtime: Runtime) -> None:
+    program = load_enable(runtime)
+    runtime.command(CommandCode.START)
+    runtime.wait_for(lambda s: s.phase is MotionPhase.PROGRAM and s.path_s_mm > 40, 10.0)
+    runtime.command(CommandCode.HOLD)
+    held = runtime.wait_for(lambda s: s.feed_mm_s == 0.0 and s.phase is MotionPhase.IDLE, 2.0)
+    assert held.state is MachineState.HOLDING
+    runtime.command(CommandCode.RESUME)
+    run_to_standby(runtime)
+    time.sleep(0.05)
+    targets = received_targets_mm(runtime)
+    assert tuple(targets[-1]) == program.end_mm
+    check_limits(targets, VMAX)
+
+
+def test_override_changes_are_spliced_smoothly(runtime: Runtime) -> None:
+    program = load_enable(runtime)
+    runtime.command(CommandCode.START)
+    runtime.wait_for(lambda s: s.phase is MotionPhase.PROGRAM and s.path_s_mm > 10, 10.0)
+    runtime.command(CommandCode.SET_OVERRIDE, override_percent=40.0)
+    runtime.wait_for(lambda s: 0 < s.feed_mm_s <= 40.5, 2.0)
+    runtime.command(CommandCode.SET_OVERRIDE, override_percent=120.0)
+    run_to_standby(runtime, 30.0)
+    time.sleep(0.05)
+    targets = received_targets_mm(runtime)
+    assert tuple(targets[-1]) == program.end_mm
+    check_limits(targets, VMAX * 1.2)
+
+
+def test_killed_planner_stops_on_the_path_is_restarted_and_the_next_start_works(
+    runtime: Runtime,
+) -> None:
+    program = load_enable(runtime)
+    runtime.command(CommandCode.START)
+    runtime.wait_for(lambda s: s.phase is MotionPhase.PROGRAM and s.path_s_mm > 30, 10.0)
+    planner = runtime.process("planner")
+    os.kill(planner.pid, signal.SIGKILL)
+    status = runtime.wait_for(lambda s: s.state is MachineState.ERROR_STOP, 2.0)
+    assert status.fault.kind is FaultKind.PLANNER_LOST
+    runtime.wait_for(lambda s: s.feed_mm_s == 0.0, 2.0)
+    restarted = runtime.process("planner")
+    assert restarted.pid != planner.pid and restarted.is_alive()
+    time.sleep(0.05)
+    check_limits(received_targets_mm(runtime), VMAX)
+    runtime.command(CommandCode.RESET)
+    runtime.wait_for(lambda s: s.state is MachineState.STANDBY, 5.0)
+    runtime.command(CommandCode.START, timeout_s=10.0)
+    run_to_standby(runtime)
+    assert runtime.status().axes[0].commanded_mm == program.end_mm[0]
+
+
+def test_killed_cycle_ends_the_runtime_with_a_clear_message(runtime: Runtime) -> None:
+    load_enable(runtime)
+    cycle = runtime.process("cycle")
+    os.kill(cycle.pid, signal.SIGKILL)
+    with pytest.raises(CycleDied, match="signal 9"):
+        runtime.wait_for(lambda s: False, 5.0)
+    runtime.stop()
+    for name in ("planner", "simulated-drives"):
+        assert not runtime.process(name).is_alive()
