@@ -57,6 +57,8 @@ class CycleConfig:
     realtime: RealtimeConfig = RealtimeConfig()
     overrun_limit: int = 3
     """More consecutive missed periods than this stop the machine (ErrorStop)."""
+    statistics_window_s: float = 10.0
+    """The lateness percentiles in the status cover the periods of this last stretch."""
 
     @property
     def period_s(self) -> float:
@@ -326,6 +328,9 @@ def _parse_cycle(s: _Section) -> CycleConfig:
         period_ms=s.number("period_ms", d.period_ms, minimum=0.5, maximum=100),
         realtime=_parse_realtime(s.section("realtime")),
         overrun_limit=s.integer("overrun_limit", d.overrun_limit, minimum=0, maximum=1000),
+        statistics_window_s=s.number(
+            "statistics_window_s", d.statistics_window_s, minimum=1, maximum=3600
+        ),
     )
     s.finish()
     if config.realtime.spin_us >= config.period_ms * 1000:

@@ -151,6 +151,11 @@ class SeqlockCell:
         self._layout.pack_into(self._scratch, 0, *values)
         self.publish()
 
+    @property
+    def written(self) -> bool:
+        """Whether the writer has published at least once."""
+        return int(self._seq[0]) != 0
+
     def read_bytes(self) -> bytes | None:
         """A consistent copy of the record; None if never written or caught mid-write."""
         for _ in range(READ_ATTEMPTS):
@@ -636,7 +641,7 @@ class Mailbox:
 
 # -- status -----------------------------------------------------------------------------------
 
-_STATUS_HEAD = "IQBBB?BbH" + f"{FAULT_TEXT_BYTES}s" + "dddd" + "QffffffQ" + f"{MESSAGE_BYTES}s"
+_STATUS_HEAD = "IQBBB?BbH" + f"{FAULT_TEXT_BYTES}s" + "dddd" + "QfffffffQ" + f"{MESSAGE_BYTES}s"
 _PROGRAM_STATUS = f"qId{NAME_BYTES}s"
 _LATER_FAULT = f"HbH{FAULT_TEXT_BYTES}s"
 _RECORD = "qBIBB"
@@ -738,6 +743,11 @@ class StatusBoard:
 
     # -- readers ---------------------------------------------------------------------------
 
+    @property
+    def published(self) -> bool:
+        """Whether the cycle has published a snapshot yet."""
+        return self._cell.written
+
     def snapshot(self) -> StatusSnapshot | None:
         """The last published snapshot; None before the first (or caught mid-write)."""
         copy = self._cell.read_bytes()
@@ -765,6 +775,7 @@ _STATUS_HEAD_FIELDS = (
     "lateness_last_us",
     "lateness_p50_us",
     "lateness_p99_us",
+    "lateness_p999_us",
     "lateness_max_us",
     "execution_last_us",
     "execution_max_us",
@@ -873,6 +884,7 @@ def _decode_status(values: tuple, axis_names: tuple[str, ...]) -> StatusSnapshot
             lateness_last_us=v["lateness_last_us"],
             lateness_p50_us=v["lateness_p50_us"],
             lateness_p99_us=v["lateness_p99_us"],
+            lateness_p999_us=v["lateness_p999_us"],
             lateness_max_us=v["lateness_max_us"],
             execution_last_us=v["execution_last_us"],
             execution_max_us=v["execution_max_us"],

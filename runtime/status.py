@@ -129,6 +129,7 @@ class CycleStatistics:
     lateness_last_us: float = 0.0
     lateness_p50_us: float = 0.0
     lateness_p99_us: float = 0.0
+    lateness_p999_us: float = 0.0
     lateness_max_us: float = 0.0
     execution_last_us: float = 0.0
     execution_max_us: float = 0.0

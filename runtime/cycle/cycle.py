@@ -367,6 +367,7 @@ class Cycle:
             lateness_last_us=stats.lateness_last_us,
             lateness_p50_us=stats.lateness_p50_us,
             lateness_p99_us=stats.lateness_p99_us,
+            lateness_p999_us=stats.lateness_p999_us,
             lateness_max_us=stats.lateness_max_us,
             execution_last_us=stats.execution_last_us,
             execution_max_us=stats.execution_max_us,

@@ -52,6 +52,7 @@ def cycle_main(config: MachineConfig, run_dir: str, log_level: str, parent_pid: 
         overrun_limit=config.cycle.overrun_limit,
         on_overrun_limit=lambda run: cycle.on_overrun_limit(run),
         name="cycle",
+        lateness_window_cycles=round(config.cycle.statistics_window_s / config.cycle.period_s),
     )
     cycle = Cycle(
         config,

@@ -8,9 +8,10 @@ returns, so the process loop stays responsive to the cycle's requests:
 - a new request (:class:`runtime.shared.PlanRequest`): FOLLOW starts the job in the ring the
   cycle does not read and offers it from row 0; CANCEL drops it; CHANGE_LIMITS marks a splice;
 - a splice: the rows are re-planned with the new override from the state of a row
-  :attr:`PlannerService.splice_lead_periods` ahead of the cycle (the ring rows carry feed and
-  acceleration), written into the other ring from the next row on, and offered; the cycle
-  accepts it if it has not reached that row, else it is made again twice as far ahead;
+  :attr:`PlannerService.splice_lead_periods` after the one the cycle takes next (the ring rows
+  carry feed and acceleration), written into the other ring from the row after it, and
+  offered; the cycle accepts it if it has not reached that row, else it is made again further
+  ahead;
 - otherwise the next block of the job, up to :attr:`PlannerService.buffer_high_periods` rows
   ahead of the cycle.
 
@@ -53,6 +54,8 @@ logger = logging.getLogger(__name__)
 
 #: Programs whose planning geometry is kept for re-plans (resume, override, restart).
 PATH_CACHE_SIZE = 4
+#: Lead of the second try of a splice the cycle refused, periods (then it doubles).
+SPLICE_RETRY_MIN_PERIODS = 2
 
 
 @dataclass(eq=False)
@@ -85,8 +88,11 @@ class PlannerService:
 
     #: Plan this many periods ahead of the cycle before waiting.
     buffer_high_periods = 500
-    #: A splice is first tried this many periods ahead of the cycle's next row.
-    splice_lead_periods = 8
+    #: A splice re-plans from the state of the row the cycle takes next plus this many (its new
+    #: rows follow that row): 0 changes the setpoint two periods after the command when the
+    #: planner answers within about a period and a half; an offer that comes too late is
+    #: refused and made again further ahead (:data:`SPLICE_RETRY_MIN_PERIODS`, then doubling).
+    splice_lead_periods = 0
     #: Rows per planned block (the first block of a job or splice comes as soon as it is planned).
     block_periods = 64
 
@@ -229,7 +235,8 @@ class PlannerService:
             if not job.live:
                 self._job = None  # the cycle moved on to another job
             else:
-                job.splice_lead *= 2  # the cycle got there first: try further ahead
+                # The cycle got there first: try further ahead.
+                job.splice_lead = max(SPLICE_RETRY_MIN_PERIODS, 2 * job.splice_lead)
                 job.candidate = None
             return True
         job.live = True

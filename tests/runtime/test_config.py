@@ -24,7 +24,8 @@ def test_shipped_configs_load() -> None:
     sim = load_config(ROOT / "configs" / "sim.yaml")
     assert [a.name for a in sim.axes] == ["X", "Y", "Z"]
     assert [a.node_id for a in sim.axes] == [1, 2, 3]
-    assert sim.can.interface == "virtual"
+    assert sim.can.interface == "local"
+    assert sim.cycle.overrun_limit == 3 and sim.can.stale_feedback_cycles == 3
     assert sim.simulation.drives is True
     assert sim.cycle.period_ms == 4 and sim.cycle.period_s == pytest.approx(0.004)
     assert (sim.planner.vmax_mm_s, sim.planner.amax_mm_s2, sim.planner.jmax_mm_s3) == (

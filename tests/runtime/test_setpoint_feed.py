@@ -151,3 +151,20 @@ def test_planner_failure_is_a_fault_and_a_stop_on_the_rows_planned(h: Harness) -
     h.until(lambda s: s.state is MachineState.ERROR_STOP, 50)
     fault = h.status.fault
     assert fault is not None and "cannot be loaded" in fault.text
+
+
+def test_an_override_changes_the_setpoint_two_periods_after_the_command(h: Harness) -> None:
+    """With a planner that answers at once, the first spliced row is the second after the
+    command's period (the command's own period and the next keep the old plan)."""
+    start(h, 40.0)
+    reference = Harness(h.programs.directory.parent / "reference")
+    reference.program_under_test = reference.standby_with_program()
+    start(reference, 40.0)
+    assert reference.setpoints[-1] == h.setpoints[-1]
+    h.command(CommandCode.SET_OVERRIDE, override_percent=50.0)
+    reference.period()
+    h.period(3)
+    reference.period(3)
+    mine, theirs = h.setpoints[-4:], reference.setpoints[-4:]
+    assert mine[:2] == theirs[:2]
+    assert mine[2].feed_mm_s < theirs[2].feed_mm_s

@@ -1,0 +1,58 @@
+"""The HMI process's link to the machine: the status and the mailbox in shared memory.
+
+The Modbus server (:mod:`runtime.hmi.server`) sees the machine only through this
+:class:`SharedMachineLink`: the cycle's last status snapshot (a seqlock read), the HMI mailbox
+(commands judged by the cycle, in order), the activity counter the cycle's HMI link watchdog
+watches, and the program store where validated curves go for the planner.
+
+Threading: the server's event loop thread calls :meth:`snapshot`, :meth:`post` and
+:meth:`note_activity` (O(1) except the snapshot's decoding, cached per published period); a
+worker thread calls ``programs.add``.
+"""
+
+from __future__ import annotations
+
+import time
+
+from runtime.commands import Command
+from runtime.config import MachineConfig
+from runtime.programs import ProgramStore
+from runtime.shared import SharedState
+from runtime.status import StatusSnapshot
+
+#: Tries to catch a snapshot between two of the cycle's writes before giving up for this read.
+SNAPSHOT_ATTEMPTS = 50
+#: Pause between those tries [s] (the cycle's write takes a few µs).
+SNAPSHOT_RETRY_S = 0.0001
+
+
+class SharedMachineLink:
+    """What the HMI server needs of the machine, over the runtime's shared memory."""
+
+    def __init__(self, config: MachineConfig, shared: SharedState, programs: ProgramStore) -> None:
+        self.config = config
+        self.axis_names = tuple(axis.name for axis in config.axes)
+        self.programs = programs
+        self._shared = shared
+        self._last: StatusSnapshot | None = None
+
+    def snapshot(self) -> StatusSnapshot | None:
+        """The last period's status; None until the cycle has published its first one."""
+        status = self._shared.status
+        for _ in range(SNAPSHOT_ATTEMPTS):
+            snapshot = status.snapshot()
+            if snapshot is not None:
+                self._last = snapshot
+                return snapshot
+            if self._last is None and not status.published:
+                return None
+            time.sleep(SNAPSHOT_RETRY_S)
+        return self._last
+
+    def post(self, command: Command) -> int | None:
+        """Queue ``command`` for the cycle; its ticket, or None when the mailbox is full."""
+        return self._shared.hmi_mailbox.post(command)
+
+    def note_activity(self) -> None:
+        """An HMI heartbeat change or an accepted command: restarts the HMI link watchdog."""
+        self._shared.hmi_activity.value += 1
