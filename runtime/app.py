@@ -33,7 +33,7 @@ from planner.errors import PlannerError
 from planner.nurbs import NurbsCurve
 from planner.stream import Path, stream_setpoints
 from runtime.commands import Command, CommandCode, CommandResult
-from runtime.config import MachineConfig
+from runtime.config import DEMO_CURVE_PATH, MachineConfig
 from runtime.controller import Controller
 from runtime.curves import limits_for_curve, load_curve_file, planner_limits
 from runtime.errors import RuntimeFault
@@ -43,7 +43,6 @@ from runtime.status import MachineState, StatusSnapshot
 
 logger = logging.getLogger(__name__)
 
-DEMO_CURVE = FilePath("configs/curves/paper.yaml")
 #: SYNC-loss limit of in-process simulated drives, in periods beyond the longest SYNC gap the
 #: cycle's overrun limit tolerates. Real drives use 1.5 to 2 periods; drives simulated in this
 #: process share its interpreter lock with the planner worker, so their SYNC callbacks can lag
@@ -289,8 +288,8 @@ def run_machine(
                 machine.command(
                     CommandCode.LOAD_CURVE,
                     curve=machine.controller.prepare_curve(
-                        load_curve_file(curve_path or DEMO_CURVE),
-                        name=str(curve_path or DEMO_CURVE),
+                        load_curve_file(curve_path or DEMO_CURVE_PATH),
+                        name=str(curve_path or DEMO_CURVE_PATH),
                     ),
                 )
             if demo:
