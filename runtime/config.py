@@ -22,22 +22,10 @@ import yaml
 
 from runtime.errors import ConfigError
 
-
-def _shipped_configs_dir() -> Path:
-    """Where the shipped machine descriptions, curves and EDS files are.
-
-    An installed wheel holds the repository's ``configs/`` as the package data
-    ``runtime/configs`` (``pyproject.toml`` maps it); a checkout (an editable install) has it
-    beside this package.
-    """
-    package = Path(__file__).resolve().parent
-    installed = package / "configs"
-    return installed if installed.is_dir() else package.parent / "configs"
-
-
 #: The shipped configurations (``sim.yaml``, ``vcan.yaml``, ``ipc-example.yaml``, ``curves/``,
-#: ``drives/``), found the same way from any working directory.
-SHIPPED_CONFIGS_DIR = _shipped_configs_dir()
+#: ``drives/``): the package data ``runtime/configs``, which in a checkout is a symbolic link to
+#: the repository's ``configs/`` (``pyproject.toml``). Found from any working directory.
+SHIPPED_CONFIGS_DIR = (Path(__file__).parent / "configs").resolve()
 #: The configuration the command line uses when ``--config`` is not given: the simulated machine.
 DEFAULT_CONFIG_PATH = SHIPPED_CONFIGS_DIR / "sim.yaml"
 #: The curve ``softmotion run --demo`` runs: Table 1 of the paper.

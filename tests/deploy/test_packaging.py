@@ -1,5 +1,5 @@
-"""pyproject.toml lists every package and ships every file of configs/: the wheel holds what a
-checkout has (tests/deploy/test_wheel.py then runs it)."""
+"""configs/ ships with the wheel: runtime/configs links to it and pyproject.toml's package data
+covers every file in it (tests/deploy/test_wheel.py then runs the installed wheel)."""
 
 from __future__ import annotations
 
@@ -8,29 +8,26 @@ import tomllib
 
 from machine_files import ROOT
 
-SETUPTOOLS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+from runtime.config import SHIPPED_CONFIGS_DIR
+
+PACKAGE_DATA = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
+    "package-data"
+]
 
 
-def test_every_python_package_is_listed() -> None:
-    on_disk = {
-        ".".join(init.parent.relative_to(ROOT).parts)
-        for top in ("planner", "drives", "runtime")
-        for init in (ROOT / top).rglob("__init__.py")
-    }
-    listed = {name for name in SETUPTOOLS["packages"] if not name.startswith("runtime.configs")}
-    assert listed == on_disk, "pyproject.toml [tool.setuptools] packages must list every package"
+def test_the_package_data_directory_is_the_repositorys_configs() -> None:
+    link = ROOT / "runtime" / "configs"
+    assert link.is_symlink() and str(link.readlink()) == "../configs"
+    assert SHIPPED_CONFIGS_DIR == ROOT / "configs"
 
 
 def test_every_file_of_configs_ships_as_package_data() -> None:
-    package_dir = SETUPTOOLS["package-dir"]["runtime.configs"]
-    assert (ROOT / package_dir).is_dir()
-    for path in (ROOT / package_dir).rglob("*"):
+    for path in (ROOT / "configs").rglob("*"):
         if path.is_dir():
             continue
-        relative = path.parent.relative_to(ROOT / package_dir).parts
-        package = ".".join(("runtime.configs", *relative))
-        assert package in SETUPTOOLS["packages"], f"{package} (for {path.name}) is not listed"
-        patterns = SETUPTOOLS["package-data"].get(package, [])
+        package = ".".join(("runtime", "configs", *path.parent.relative_to(ROOT / "configs").parts))
+        patterns = PACKAGE_DATA.get(package, [])
         assert any(fnmatch.fnmatch(path.name, pattern) for pattern in patterns), (
-            f"{path.relative_to(ROOT)} matches no package-data pattern of {package}"
+            f"{path.relative_to(ROOT)} matches no package-data pattern of {package} "
+            "in pyproject.toml"
         )
