@@ -663,8 +663,8 @@ def check_can_bus(can: CanConfig, problem: str | None) -> Check:
             "can link",
             problem,
             f"install the {can.interface} driver and library python-can needs, connect the "
-            f"adapter, check can.channel; on Linux most adapters also work as SocketCAN "
-            f"(see {DOCS})",
+            "adapter, check can.channel, stop a running softmotion (an adapter opens once); "
+            f"on Linux most adapters also work as SocketCAN (see {DOCS})",
         )
     return _ok("can link", f"{can.interface} {can.channel} opened at {can.bitrate} bit/s")
 
