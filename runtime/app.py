@@ -23,7 +23,7 @@ from typing import TextIO
 
 from planner.errors import PlannerError
 from runtime.commands import CommandCode
-from runtime.config import MachineConfig
+from runtime.config import DEMO_CURVE_PATH, MachineConfig
 from runtime.curves import load_curve_file
 from runtime.errors import RuntimeFault
 from runtime.programs import Program
@@ -32,7 +32,6 @@ from runtime.supervisor import CommandRefused, Runtime
 
 logger = logging.getLogger(__name__)
 
-DEMO_CURVE = FilePath("configs/curves/paper.yaml")
 EXIT_OK = 0
 EXIT_FAILURE = 1
 #: How long the demo waits for the drives to be enabled (boot included).
@@ -67,7 +66,7 @@ def run_machine(
             f"{config.modbus.bind}:{config.modbus.port}" if config.modbus.enabled else "off",
         )
         if demo or curve_path is not None:
-            path = curve_path or DEMO_CURVE
+            path = curve_path or DEMO_CURVE_PATH
             program = runtime.programs.add(
                 load_curve_file(path), config, name=FilePath(path).name, crc32=0
             )

@@ -11,23 +11,16 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 from runtime.config import DEFAULT_CONFIG_PATH, load_config
 from runtime.errors import ConfigError
 from runtime.logs import queued_logging
+from runtime.version import VERSION
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
-
-
-def _version() -> str:
-    try:
-        return version("softmotion")
-    except PackageNotFoundError:
-        return "unknown"
 
 
 def _config_parent() -> argparse.ArgumentParser:
@@ -51,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
             "CANopen CiA-402 drives, commanded over Modbus TCP."
         ),
     )
-    parser.add_argument("--version", action="version", version=f"softmotion {_version()}")
+    parser.add_argument("--version", action="version", version=f"softmotion {VERSION}")
     parser.add_argument(
         "--log-level",
         default="INFO",
@@ -74,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--demo",
         action="store_true",
-        help="run configs/curves/paper.yaml (or --curve) to the end, print a summary, exit",
+        help="run the paper's curve (or --curve) to the end, print a summary, exit",
     )
     run.add_argument("--curve", type=Path, metavar="CURVE.yaml", help="curve to load at start")
 
@@ -118,6 +111,17 @@ def build_parser() -> argparse.ArgumentParser:
     from drives.sim import service as sim_service
 
     sim_service.add_arguments(sim_drive)
+
+    from runtime import doctor
+
+    doctor.add_arguments(
+        sub.add_parser(
+            "doctor",
+            parents=[config],
+            help="check this machine for the configured cycle",
+            description="One line per check (ok, warn, fail with its fix); exit 1 if any fails.",
+        )
+    )
     return parser
 
 
@@ -142,6 +146,10 @@ def _run(args: argparse.Namespace) -> int:
             )
         if args.command == "plan":
             return _plan(args)
+        if args.command == "doctor":
+            from runtime import doctor
+
+            return doctor.run(args)
         if args.command == "hmi":
             from runtime.hmi import cli as hmi_cli
 

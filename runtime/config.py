@@ -22,8 +22,14 @@ import yaml
 
 from runtime.errors import ConfigError
 
-#: The configuration the command line uses when ``--config`` is not given.
-DEFAULT_CONFIG_PATH = Path("configs/sim.yaml")
+#: The shipped configurations (``sim.yaml``, ``vcan.yaml``, ``ipc-example.yaml``, ``curves/``,
+#: ``drives/``): the package data ``runtime/configs``, which in a checkout is a symbolic link to
+#: the repository's ``configs/`` (``pyproject.toml``). Found from any working directory.
+SHIPPED_CONFIGS_DIR = (Path(__file__).parent / "configs").resolve()
+#: The configuration the command line uses when ``--config`` is not given: the simulated machine.
+DEFAULT_CONFIG_PATH = SHIPPED_CONFIGS_DIR / "sim.yaml"
+#: The curve ``softmotion run --demo`` runs: Table 1 of the paper.
+DEMO_CURVE_PATH = SHIPPED_CONFIGS_DIR / "curves" / "paper.yaml"
 
 UPDATE_METHODS = ("corrected", "taylor2")
 GC_MODES = ("freeze", "disable", "normal")

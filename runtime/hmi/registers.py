@@ -25,7 +25,6 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum, IntEnum
-from importlib.metadata import PackageNotFoundError, version
 
 from runtime.commands import OVERRIDE_MAX_PERCENT, CommandCode, CommandResult
 from runtime.status import (
@@ -37,6 +36,7 @@ from runtime.status import (
     MachineState,
     StatusSnapshot,
 )
+from runtime.version import version_numbers
 
 #: Identity magic: "SM" in ASCII.
 MAGIC = 0x534D
@@ -422,16 +422,6 @@ def get(image: Sequence[int], field: Field, index: int = 0) -> float | int | str
     return words_ascii(image[at : at + field.registers])
 
 
-def firmware_version() -> tuple[int, int, int]:
-    """The installed softmotion version as (major, minor, patch); zeros when unknown."""
-    try:
-        text = version("softmotion")
-    except PackageNotFoundError:
-        return 0, 0, 0
-    parts = [int(p) if p.isdigit() else 0 for p in text.split(".")[:3]]
-    return tuple(parts + [0] * (3 - len(parts)))  # type: ignore[return-value]
-
-
 @dataclass(frozen=True)
 class Identity:
     """The identity block."""
@@ -457,7 +447,7 @@ def identity_image(
     flags = (AccessFlag.READ_ONLY if read_only else 0) | (
         AccessFlag.WATCHDOG if watchdog_timeout_ms > 0 and not read_only else 0
     )
-    major, minor, patch = firmware_version()
+    major, minor, patch = version_numbers()
     for name, value in (
         ("MAGIC", MAGIC),
         ("MAP_VERSION", MAP_VERSION),

@@ -10,7 +10,13 @@ from typing import Any
 import pytest
 import yaml
 
-from runtime.config import DEFAULT_CONFIG_PATH, MachineConfig, load_config, parse_config
+from runtime.config import (
+    DEFAULT_CONFIG_PATH,
+    DEMO_CURVE_PATH,
+    MachineConfig,
+    load_config,
+    parse_config,
+)
 from runtime.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -39,7 +45,13 @@ def test_shipped_configs_load() -> None:
     assert vcan.axes == sim.axes and vcan.planner == sim.planner
     ipc = load_config(ROOT / "configs" / "ipc-example.yaml")
     assert ipc.axes[2].direction == -1 and ipc.cycle.realtime.cpu == 3
-    assert str(DEFAULT_CONFIG_PATH) == "configs/sim.yaml"
+
+
+def test_defaults_are_the_checkouts_configs_from_any_directory() -> None:
+    # In a checkout (editable install) the shipped files are the repository's configs/; the
+    # installed wheel's copy is checked by tests/deploy/test_wheel.py.
+    assert DEFAULT_CONFIG_PATH == ROOT / "configs" / "sim.yaml"
+    assert DEMO_CURVE_PATH == ROOT / "configs" / "curves" / "paper.yaml"
 
 
 def test_minimal_config_takes_defaults() -> None:
