@@ -1,0 +1,1 @@
+"""The cycle process: one real-time thread running the drives, the machine and the setpoints."""

@@ -1,0 +1,1 @@
+"""The planner process: plans the jobs the cycle asks for into the shared setpoint rings."""
