@@ -1,168 +1,366 @@
-"""Cycle lateness benchmark: how late the cyclic thread wakes, bare and with the runtime's work.
+"""Cycle benchmark: the split runtime's cycle under load against a bare real-time loop, one run.
 
-Prints one table row per variant: lateness (wake time minus the deadline of the first period
-due, see runtime/scheduler.py) p50, p99, p99.9 and max in µs over every executed cycle of a run
-of ``--cycles`` periods, the cycles executed and the periods skipped. Variants:
+Part 1, all at once on one ``local`` CAN bus (``--seconds`` of motion, 60 by default):
 
-- (a) the bare loop: a :class:`runtime.scheduler.CyclicTask` whose step does nothing, so it only
-  sleeps (and spins ``spin_us``) to the same absolute deadlines as the runtime, under the
-  default scheduler and under the runtime's real-time settings (SCHED_FIFO 80, mlockall, GIL
-  switch interval 0.5 ms); then with a CPU-bound Python thread beside it (a proxy for the
-  planner worker) with and without SCHED_FIFO and the 0.5 ms switch interval, to show the GIL.
-- (b) the runtime's cycle and (c) the same with the planner worker busy on a long curve, both
-  through ``bench/runtime_loop.py`` (the simulated machine running a long curve).
-  The ratio p99(b) / p99(a, real-time settings) is printed.
+- a bare loop in a process of its own (:class:`runtime.scheduler.CyclicTask`, SCHED_FIFO 80,
+  mlockall, the runtime's spin) that sends one frame (COB-ID 0x7E0) as it wakes each period:
+  the reference for wake-up lateness and for frame timing on the bus;
+- the runtime (supervisor, cycle, planner, HMI and simulated drives as processes) running the
+  paper's curve again and again, the feed override changed every 100 ms (30..150 %), ten Modbus
+  clients (a process of their own) reading the whole status at 20 Hz, logging on;
+- an independent listener process that timestamps every SYNC (0x80) and every bare frame.
 
-Run: ``.venv/bin/python bench/bench_cycle.py [--cycles 10000] [--period-ms 4]`` (root, or
-CAP_SYS_NICE and CAP_IPC_LOCK, for the real-time settings; refused ones are reported). Each
-variant takes cycles x period (40 s at the defaults). Figures depend on the kernel, the host
-and whatever else runs: this is a measurement, not a test.
+Printed: wake-up lateness p50/p99/p99.9/max and missed periods of both loops (each measured by
+itself over the whole run), SYNC and bare-frame intervals as seen on the bus (p99 and p99.9 of
+|interval - period|, intervals above 1.5 periods), the ratios against the issue's targets, the
+faults during the motion (there must be none), the periods from each override change to its first
+re-planned setpoint, and what the Modbus clients saw.
+
+Part 2: CPU time per period of the cycle process (from /proc) and its longest period, with 3 and
+with 8 axes, the machine enabled and running the paper's curve for ``--cpu-seconds``.
+
+Run: ``.venv/bin/python bench/bench_cycle.py [--seconds 60] [--cpu-seconds 10]`` as root (or
+with CAP_SYS_NICE and CAP_IPC_LOCK). Figures depend on the kernel, the host and whatever else
+runs: a measurement, not a test.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import multiprocessing
+import os
+import socket
 import sys
+import tempfile
 import threading
-from dataclasses import dataclass
+import time
+import uuid
+from dataclasses import replace
+from pathlib import Path
 
-from runtime.config import RealtimeConfig
-from runtime.realtime import SWITCH_INTERVAL_S
+import can
+import numpy as np
+
+from drives.bus import open_bus
+from runtime.commands import CommandCode
+from runtime.config import DEMO_CURVE_PATH, MachineConfig, RealtimeConfig, load_config
+from runtime.curves import load_curve_file
 from runtime.scheduler import CycleTick, CyclicTask
+from runtime.status import MachineState, StatusSnapshot
+from runtime.supervisor import Runtime
 
-DEFAULT_SCHEDULER = RealtimeConfig(priority=0, cpu=None, lock_memory=False, gc="normal")
-REALTIME = RealtimeConfig(priority=80, cpu=None, lock_memory=True, gc="normal")
-PYTHON_SWITCH_INTERVAL_S = 0.005
-
-
-@dataclass(frozen=True)
-class Variant:
-    label: str
-    realtime: RealtimeConfig
-    switch_interval_s: float
-    cpu_bound_thread: bool
-
-
-BARE_VARIANTS = (
-    Variant(
-        "a  bare, SCHED_OTHER, switch 5 ms", DEFAULT_SCHEDULER, PYTHON_SWITCH_INTERVAL_S, False
-    ),
-    Variant("a  bare, FIFO 80 + mlockall, switch 0.5 ms", REALTIME, SWITCH_INTERVAL_S, False),
-    Variant(
-        "a' + CPU thread, SCHED_OTHER, switch 5 ms",
-        DEFAULT_SCHEDULER,
-        PYTHON_SWITCH_INTERVAL_S,
-        True,
-    ),
-    Variant(
-        "a' + CPU thread, SCHED_OTHER, switch 0.5 ms", DEFAULT_SCHEDULER, SWITCH_INTERVAL_S, True
-    ),
-    Variant(
-        "a' + CPU thread, FIFO 80 + mlockall, switch 5 ms", REALTIME, PYTHON_SWITCH_INTERVAL_S, True
-    ),
-    Variant(
-        "a' + CPU thread, FIFO 80 + mlockall, switch 0.5 ms", REALTIME, SWITCH_INTERVAL_S, True
-    ),
-)
-
-#: The bare variant with the runtime's settings, the reference for the ratio p99(b) / p99(a).
-REFERENCE_LABEL = BARE_VARIANTS[1].label
+ROOT = Path(__file__).resolve().parents[1]
+SYNC_COB_ID = 0x80
+BARE_COB_ID = 0x7E0
+REALTIME = RealtimeConfig(priority=80, cpu=None, lock_memory=True, gc="normal", spin_us=200)
+OVERRIDES = (30.0, 60.0, 100.0, 150.0, 80.0, 120.0)
+OVERRIDE_EVERY_S = 0.1
+CLIENTS = 10
+CLIENT_RATE_HZ = 20.0
 
 
-def _burn_cpu(stop: threading.Event) -> None:
-    """Pure-Python arithmetic holding the GIL between eval-loop switch points, like planning."""
-    total = 0.0
-    while not stop.is_set():
-        for i in range(1000):
-            total += i * 0.5
+# -- helper processes ---------------------------------------------------------------------------
 
 
-def run_bare(variant: Variant, cycles: int, period_s: float) -> dict[str, float]:
+def bare_loop(channel: str, periods: int, period_s: float, results) -> None:
+    """The reference: a bare real-time loop sending one frame as it wakes each period."""
+    bus = open_bus("local", channel)
+    message = can.Message(arbitration_id=BARE_COB_ID, data=b"", is_extended_id=False)
     done = threading.Event()
 
     def step(tick: CycleTick) -> None:
-        if tick.period_index + 1 >= cycles:
+        bus.send(message)
+        if tick.period_index + 1 >= periods:
             done.set()
+            task.stop()
 
     task = CyclicTask(
         period_s,
         step,
-        realtime=variant.realtime,
-        overrun_limit=cycles,
-        name="bench",
-        lateness_window_cycles=cycles,
-        switch_interval_s=variant.switch_interval_s,
+        realtime=REALTIME,
+        overrun_limit=periods,
+        name="bare",
+        lateness_window_cycles=periods,
     )
-    stop_burner = threading.Event()
-    burner = threading.Thread(target=_burn_cpu, args=(stop_burner,), daemon=True)
-    if variant.cpu_bound_thread:
-        burner.start()
-    try:
-        task.start()
-        done.wait()
-        task.stop()
-    finally:
-        stop_burner.set()
-        if variant.cpu_bound_thread:
-            burner.join()
-    refused = [line for line in task.realtime_report if "not applied" in line]
-    for line in refused:
-        print(f"    {variant.label}: {line}", file=sys.stderr)
+    task.run()
     figures = task.lateness_percentiles()
-    figures["missed_periods"] = task.statistics().missed_periods
-    figures["cycles"] = task.statistics().cycles
-    return figures
+    stats = task.statistics()
+    figures.update(cycles=stats.cycles, missed=stats.missed_periods)
+    results.put(figures)
+    bus.shutdown()
 
 
-def format_row(label: str, figures: dict[str, float] | None) -> str:
-    if figures is None:
-        return f"{label:<52} {'not available':>61}"
-    return (
-        f"{label:<52} {figures['p50']:>9.1f} {figures['p99']:>9.1f} {figures['p99.9']:>10.1f}"
-        f" {figures['max']:>10.1f} {int(figures['cycles']):>8d}"
-        f" {int(figures['missed_periods']):>8d}"
+def listener(channel: str, stop, results) -> None:
+    """Timestamps of every SYNC and bare frame on the bus."""
+    bus = open_bus("local", channel)
+    times: dict[int, list[float]] = {SYNC_COB_ID: [], BARE_COB_ID: []}
+    while not stop.is_set():
+        message = bus.recv(0.05)
+        if message is not None and message.arbitration_id in times:
+            times[message.arbitration_id].append(message.timestamp)
+    bus.shutdown()
+    results.put({k: np.array(v) for k, v in times.items()})
+
+
+def modbus_clients(port: int, stop, results) -> None:
+    """Ten clients reading the whole status (input registers) at 20 Hz each."""
+    from pymodbus.client import ModbusTcpClient
+
+    from runtime.hmi.registers import INPUT_SIZE
+
+    latencies: list[float] = []
+    errors = [0]
+    lock = threading.Lock()
+
+    def client() -> None:
+        modbus = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+        modbus.connect()
+        next_s = time.monotonic()
+        while not stop.is_set():
+            begin = time.perf_counter()
+            ok = True
+            for address in range(0, INPUT_SIZE, 125):
+                reply = modbus.read_input_registers(
+                    address, count=min(125, INPUT_SIZE - address), device_id=1
+                )
+                ok = ok and not reply.isError()
+            with lock:
+                latencies.append(time.perf_counter() - begin)
+                errors[0] += not ok
+            next_s += 1.0 / CLIENT_RATE_HZ
+            time.sleep(max(0.0, next_s - time.monotonic()))
+        modbus.close()
+
+    threads = [threading.Thread(target=client, daemon=True) for _ in range(CLIENTS)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    results.put({"reads": len(latencies), "errors": errors[0], "latency_s": np.array(latencies)})
+
+
+# -- part 1 -------------------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def bench_config(channel: str, seconds: float, axes: int = 3) -> MachineConfig:
+    config = load_config(ROOT / "configs" / "sim.yaml")
+    cycle = replace(config.cycle, statistics_window_s=min(3600.0, seconds + 30.0))
+    axis_list = list(config.axes)
+    for i in range(len(axis_list), axes):
+        axis_list.append(replace(config.axes[0], name=f"A{i + 1}", node_id=i + 1))
+    return replace(
+        config,
+        cycle=cycle,
+        axes=tuple(axis_list),
+        can=replace(config.can, channel=channel),
+        modbus=replace(config.modbus, port=free_port()),
     )
+
+
+def run_motion(runtime: Runtime, seconds: float, report: dict) -> None:
+    """The paper's curve again and again, the override changed every 100 ms."""
+    program = runtime.programs.add(
+        load_curve_file(DEMO_CURVE_PATH), runtime.config, name="paper", crc32=0
+    )
+    runtime.command(CommandCode.LOAD_CURVE, program=program)
+    runtime.command(CommandCode.ENABLE)
+    runtime.wait_for(lambda s: s.state is MachineState.STANDBY, 30.0)
+    faults: list[str] = []
+    latencies: list[int] = []
+    end = time.monotonic() + seconds
+    next_change = time.monotonic()
+    changes = 0
+    applied = runtime.status().stats.overrides_applied
+    while time.monotonic() < end:
+        runtime.supervise()
+        status = runtime.status()
+        if status.state is MachineState.STANDBY:
+            runtime.command(CommandCode.START)
+        elif status.state is MachineState.ERROR_STOP:
+            faults.append(status.message)
+            _recover(runtime)
+        elif status.state is MachineState.MOVING and time.monotonic() >= next_change:
+            percent = OVERRIDES[changes % len(OVERRIDES)]
+            changes += 1
+            runtime.command(CommandCode.SET_OVERRIDE, override_percent=percent)
+            next_change = time.monotonic() + OVERRIDE_EVERY_S
+        if status.stats.overrides_applied != applied:
+            applied = status.stats.overrides_applied
+            latencies.append(status.stats.override_latency_periods)
+        time.sleep(0.005)
+    if runtime.status().state is MachineState.MOVING:
+        runtime.command(CommandCode.STOP)
+    report.update(faults=faults, override_changes=changes, latencies=latencies)
+
+
+def _recover(runtime: Runtime) -> None:
+    runtime.command(CommandCode.RESET)
+    runtime.wait_for(lambda s: s.state in (MachineState.STANDBY, MachineState.DISABLED), 10.0)
+    if runtime.status().state is MachineState.DISABLED:
+        runtime.command(CommandCode.ENABLE)
+        runtime.wait_for(lambda s: s.state is MachineState.STANDBY, 10.0)
+
+
+def interval_figures(times_s: np.ndarray, period_s: float) -> dict[str, float]:
+    intervals = np.diff(np.sort(times_s))
+    jitter = np.abs(intervals - period_s)
+    return {
+        "count": len(intervals),
+        "p99_us": float(np.percentile(jitter, 99)) * 1e6,
+        "p999_us": float(np.percentile(jitter, 99.9)) * 1e6,
+        "max_us": float(jitter.max()) * 1e6,
+        "long": int(np.sum(intervals > 1.5 * period_s)),
+    }
+
+
+def part_one(seconds: float, period_s: float) -> None:
+    context = multiprocessing.get_context("spawn")
+    channel = f"bench-{uuid.uuid4().hex[:8]}"
+    config = bench_config(channel, seconds)
+    log_file = Path(tempfile.mkstemp(prefix="softmotion-bench-", suffix=".log")[1])
+    logging.basicConfig(filename=log_file, level=logging.INFO)
+    stop = context.Event()
+    results = {name: context.Queue() for name in ("bare", "listener", "clients")}
+    listen = context.Process(target=listener, args=(channel, stop, results["listener"]))
+    listen.start()
+    runtime = Runtime(config, log_level="INFO")
+    report: dict = {}
+    try:
+        runtime.start()
+        runtime.wait_for(lambda s: all(a.boot_phase >= 4 for a in s.axes), 30.0)
+        clients = context.Process(
+            target=modbus_clients, args=(config.modbus.port, stop, results["clients"])
+        )
+        clients.start()
+        periods = round((seconds + 10.0) / period_s)
+        bare = context.Process(target=bare_loop, args=(channel, periods, period_s, results["bare"]))
+        bare.start()
+        time.sleep(2.0)  # everything running before the measured motion
+        run_motion(runtime, seconds, report)
+        status = runtime.status()
+        bare_figures = results["bare"].get(timeout=60)
+        bare.join(10)
+    finally:
+        stop.set()
+        runtime.stop()
+    times = results["listener"].get(timeout=30)
+    client_figures = results["clients"].get(timeout=30)
+    listen.join(10)
+    clients.join(10)
+    print_part_one(status, bare_figures, times, client_figures, report, period_s, log_file)
+
+
+def print_part_one(
+    status: StatusSnapshot,
+    bare: dict,
+    times: dict,
+    clients: dict,
+    report: dict,
+    period_s: float,
+    log_file: Path,
+) -> None:
+    stats = status.stats
+    runtime = {
+        "p50": stats.lateness_p50_us,
+        "p99": stats.lateness_p99_us,
+        "p99.9": stats.lateness_p999_us,
+        "max": stats.lateness_max_us,
+        "cycles": stats.cycles,
+        "missed": stats.missed_periods,
+    }
+    print("wake-up lateness (µs), each loop measured by itself over the run")
+    print(
+        f"{'loop':<44} {'p50':>8} {'p99':>8} {'p99.9':>8} {'max':>9} {'periods':>8} {'missed':>6}"
+    )
+    for label, figures in (
+        ("bare SCHED_FIFO 80 + mlockall", bare),
+        ("runtime cycle under load", runtime),
+    ):
+        print(
+            f"{label:<44} {figures['p50']:>8.1f} {figures['p99']:>8.1f} {figures['p99.9']:>8.1f}"
+            f" {figures['max']:>9.1f} {int(figures['cycles']):>8d} {int(figures['missed']):>6d}"
+        )
+    ratio99 = runtime["p99"] / max(bare["p99"], 1e-9)
+    ratio999 = runtime["p99.9"] / max(bare["p99.9"], 1e-9)
+    print(
+        f"ratios: p99 {ratio99:.2f} (target <= 2), p99.9 {ratio999:.2f} (target <= 1.3), "
+        f"missed {runtime['missed']} vs bare {bare['missed']} (target <=)"
+    )
+    sync = interval_figures(times[SYNC_COB_ID], period_s)
+    reference = interval_figures(times[BARE_COB_ID], period_s)
+    print("\nframe intervals on the bus, independent listener (|interval - period|, µs)")
+    print(f"{'sender':<44} {'p99':>8} {'p99.9':>8} {'max':>9} {'frames':>8} {'>1.5T':>6}")
+    for label, figures in (("bare sender (0x7E0)", reference), ("runtime SYNC (0x80)", sync)):
+        print(
+            f"{label:<44} {figures['p99_us']:>8.1f} {figures['p999_us']:>8.1f}"
+            f" {figures['max_us']:>9.1f} {figures['count']:>8d} {figures['long']:>6d}"
+        )
+    print(
+        f"ratios: p99 {sync['p99_us'] / max(reference['p99_us'], 1e-9):.2f} (target <= 2), "
+        f"p99.9 {sync['p999_us'] / max(reference['p999_us'], 1e-9):.2f} (target <= 1.5), "
+        f"long intervals {sync['long']} vs {reference['long']} (target <=)"
+    )
+    faults = report.get("faults", [])
+    print(f"\nfaults during the motion: {len(faults)}" + "".join(f"\n  {f}" for f in faults))
+    latencies = np.array(report.get("latencies", []) or [0])
+    print(
+        f"override changes: {report.get('override_changes', 0)}; periods from the change to its "
+        f"first re-planned setpoint: median {np.median(latencies):.0f}, "
+        f"p99 {np.percentile(latencies, 99):.0f}, max {latencies.max()} (target <= 2); "
+        "hold: braking starts in the period the command is applied (0)"
+    )
+    latency_ms = clients["latency_s"] * 1000
+    print(
+        f"Modbus: {clients['reads']} whole-status reads by {CLIENTS} clients, {clients['errors']} "
+        f"with errors, p50 {np.percentile(latency_ms, 50):.2f} ms, "
+        f"p99 {np.percentile(latency_ms, 99):.2f} ms"
+    )
+    print(f"runtime log: {log_file}")
+
+
+# -- part 2 -------------------------------------------------------------------------------------
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def part_two(seconds: float) -> None:
+    print(f"\ncycle process CPU per period, machine enabled and moving, {seconds:g} s each")
+    print(f"{'axes':>5} {'CPU per period (µs)':>20} {'longest period (µs)':>20}")
+    for axes in (3, 8):
+        config = bench_config(f"cpu-{uuid.uuid4().hex[:8]}", seconds, axes)
+        config = replace(config, modbus=replace(config.modbus, enabled=False))
+        with Runtime(config, log_level="WARNING") as runtime:
+            runtime.wait_for(lambda s: all(a.boot_phase >= 4 for a in s.axes), 30.0)
+            pid = runtime.process("cycle").pid
+            report: dict = {}
+            before_cpu, before = _cpu_s(pid), runtime.status().stats.cycles
+            run_motion(runtime, seconds, report)
+            status = runtime.status()
+            cpu, periods = _cpu_s(pid) - before_cpu, status.stats.cycles - before
+        print(
+            f"{axes:>5} {cpu / max(periods, 1) * 1e6:>20.1f} {status.stats.execution_max_us:>20.1f}"
+        )
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=10_000, help="periods per variant")
-    parser.add_argument("--period-ms", type=float, default=4.0)
+    parser.add_argument("--seconds", type=float, default=60.0, help="motion under load")
+    parser.add_argument("--cpu-seconds", type=float, default=10.0, help="motion per axis count")
     args = parser.parse_args(argv)
-    period_s = args.period_ms / 1000.0
-
-    print(
-        f"cycle lateness, {args.cycles} periods of {args.period_ms:g} ms per variant "
-        f"(µs; cycles = executed, missed = periods skipped)"
-    )
-    print(
-        f"{'variant':<52} {'p50':>9} {'p99':>9} {'p99.9':>10} {'max':>10} {'cycles':>8}"
-        f" {'missed':>8}"
-    )
-    results: dict[str, dict[str, float] | None] = {}
-    for variant in BARE_VARIANTS:
-        results[variant.label] = run_bare(variant, args.cycles, period_s)
-        print(format_row(variant.label, results[variant.label]), flush=True)
-
-    from runtime_loop import run_runtime_loop
-
-    for label, planner_busy in (
-        ("b  runtime loop", False),
-        ("c  runtime loop, planner busy", True),
-    ):
-        figures = run_runtime_loop(args.cycles, planner_busy=planner_busy)
-        results[label] = figures
-        print(format_row(label, figures), flush=True)
-
-    reference = results[REFERENCE_LABEL]
-    runtime_figures = results["b  runtime loop"]
-    if reference is not None and runtime_figures is not None and reference["p99"] > 0:
-        print(
-            f"p99(b) / p99(a, real-time settings) = {runtime_figures['p99'] / reference['p99']:.2f}"
-        )
-    else:
-        print("p99(b) / p99(a, real-time settings): not available")
+    period_s = load_config(ROOT / "configs" / "sim.yaml").cycle.period_s
+    part_one(args.seconds, period_s)
+    part_two(args.cpu_seconds)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

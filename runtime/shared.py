@@ -641,7 +641,7 @@ class Mailbox:
 
 # -- status -----------------------------------------------------------------------------------
 
-_STATUS_HEAD = "IQBBB?BbH" + f"{FAULT_TEXT_BYTES}s" + "dddd" + "QfffffffQ" + f"{MESSAGE_BYTES}s"
+_STATUS_HEAD = "IQBBB?BbH" + f"{FAULT_TEXT_BYTES}s" + "dddd" + "QfffffffQHI" + f"{MESSAGE_BYTES}s"
 _PROGRAM_STATUS = f"qId{NAME_BYTES}s"
 _LATER_FAULT = f"HbH{FAULT_TEXT_BYTES}s"
 _RECORD = "qBIBB"
@@ -780,6 +780,8 @@ _STATUS_HEAD_FIELDS = (
     "execution_last_us",
     "execution_max_us",
     "missed_periods",
+    "override_latency_periods",
+    "overrides_applied",
     "message",
     "program_id",
 )
@@ -889,6 +891,8 @@ def _decode_status(values: tuple, axis_names: tuple[str, ...]) -> StatusSnapshot
             execution_last_us=v["execution_last_us"],
             execution_max_us=v["execution_max_us"],
             missed_periods=v["missed_periods"],
+            override_latency_periods=v["override_latency_periods"],
+            overrides_applied=v["overrides_applied"],
         ),
         last_command=records[-1] if records else None,
         recent_commands=records,

@@ -134,6 +134,10 @@ class CycleStatistics:
     execution_last_us: float = 0.0
     execution_max_us: float = 0.0
     missed_periods: int = 0
+    override_latency_periods: int = 0
+    """Periods from the last feed-override change to its first re-planned setpoint."""
+    overrides_applied: int = 0
+    """Feed-override changes whose re-planned setpoints were reached since start."""
 
 
 @dataclass(frozen=True)

@@ -372,6 +372,8 @@ class Cycle:
             execution_last_us=stats.execution_last_us,
             execution_max_us=stats.execution_max_us,
             missed_periods=stats.missed_periods,
+            override_latency_periods=min(self.feed.override_latency_periods, 0xFFFF),
+            overrides_applied=self.feed.overrides_applied & 0xFFFF_FFFF,
         )
         status.publish()
 

@@ -125,6 +125,11 @@ class SetpointFeed:
         self.current = Setpoint(())
         self.problem = ""
         """Why the last UNDERRUN or PLANNER_FAILED happened."""
+        self.override_latency_periods = 0
+        """Periods from the last override change to its first re-planned setpoint."""
+        self.overrides_applied = 0
+        """Override changes whose re-planned setpoints have been reached."""
+        self._override_row = 0
         self._segments: tuple[SegmentSpec, ...] = ()
         self._dimension = 0
         self._first_offer_taken = False
@@ -183,6 +188,7 @@ class SetpointFeed:
         if self.mode is FeedMode.STARTING:
             self.follow(self._segments, self._start_of_job(), override_percent)
         elif self.mode is FeedMode.PLANNED:
+            self._override_row = self._next_row
             self._post(PlanRequestKind.CHANGE_LIMITS)
 
     def brake(self) -> None:
@@ -324,6 +330,8 @@ class SetpointFeed:
         if switch is not None and row >= switch.at_row:
             self._ring = switch.ring
             self._switch = None
+            self.override_latency_periods = row - self._override_row
+            self.overrides_applied += 1
         ring = self._rings[self._ring]
         self._set_current(ring, row)
         self._hold_row = row

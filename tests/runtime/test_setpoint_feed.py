@@ -168,3 +168,4 @@ def test_an_override_changes_the_setpoint_two_periods_after_the_command(h: Harne
     mine, theirs = h.setpoints[-4:], reference.setpoints[-4:]
     assert mine[:2] == theirs[:2]
     assert mine[2].feed_mm_s < theirs[2].feed_mm_s
+    assert h.status.stats.override_latency_periods == 2
