@@ -30,6 +30,7 @@ import logging
 import multiprocessing
 import os
 import shutil
+import socket
 import tempfile
 import time
 from collections.abc import Callable
@@ -117,6 +118,8 @@ class Runtime:
         from runtime.cycle.process import cycle_main
         from runtime.planning.process import planner_main
 
+        if self.serve_hmi:
+            _check_port(self.config.modbus.bind, self.config.modbus.port)
         run_dir, level, me = str(self.run_dir), self.log_level, os.getpid()
         if self.config.simulation.drives:
             from runtime.simulation import simulation_main
@@ -282,6 +285,20 @@ def _record(status: StatusSnapshot, ticket: int) -> CommandRecord | None:
         if record.ticket == ticket and record.origin is CommandOrigin.COMMAND_LINE:
             return record
     return None
+
+
+def _check_port(bind: str, port: int) -> None:
+    """Fail early, with the address, when the HMI process could not listen on it.
+
+    :raises RuntimeFault: naming the address and the reason.
+    """
+    family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((bind, port))
+        except OSError as exc:
+            raise RuntimeFault(f"modbus: cannot listen on {bind}:{port}: {exc.strerror}") from None
 
 
 def _run_base() -> str | None:
