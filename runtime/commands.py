@@ -80,6 +80,10 @@ class CommandResult(IntEnum):
     """Enable or reset while a drive is faulted, missing or still booting."""
     MAILBOX_FULL = 7
     """The cycle's mailbox was full; nothing was queued (safe to send again)."""
+    STAGING_LOCKED = 8
+    """A commit from the staging area while another client holds it; nothing was loaded."""
+    NO_SUCH_PROGRAM = 9
+    """No library program has that number (or no library is configured)."""
     CURVE_CRC_MISMATCH = 10
     """The staged data does not match the CRC32 written with it."""
     CURVE_BAD_HEADER = 11

@@ -154,6 +154,17 @@ class ModbusConfig:
     allowed_networks: tuple[str, ...] = ("127.0.0.0/8",)
     read_only: bool = False
     watchdog: WatchdogConfig = WatchdogConfig()
+    staging_timeout_ms: int = 30_000
+    """A client's hold on the curve staging area lapses this long after its last staging write."""
+
+
+@dataclass(frozen=True)
+class ProgramsConfig:
+    """Where programs come from besides uploads."""
+
+    library_dir: Path | None = None
+    """A directory of curve files (``*.yaml``) the HMI lists and loads by number; None: no
+    library. Relative to the configuration file."""
 
 
 @dataclass(frozen=True)
@@ -184,6 +195,7 @@ class MachineConfig:
     modbus: ModbusConfig
     machine: MachineBehaviourConfig
     source: Path | None = None
+    programs: ProgramsConfig = ProgramsConfig()
 
     def axis(self, name: str) -> AxisConfig:
         """The axis called ``name``.
@@ -462,9 +474,28 @@ def _parse_modbus(s: _Section) -> ModbusConfig:
         allowed_networks=tuple(str(n) for n in networks),
         read_only=s.boolean("read_only", d.read_only),
         watchdog=wd,
+        staging_timeout_ms=s.integer(
+            "staging_timeout_ms", d.staging_timeout_ms, minimum=1000, maximum=3_600_000
+        ),
     )
     s.finish()
     return config
+
+
+def _parse_programs(s: _Section, base: Path | None) -> ProgramsConfig:
+    library = s.raw("library_dir", None)
+    path = s.key_path("library_dir")
+    s.finish()
+    if library is None:
+        return ProgramsConfig()
+    if not isinstance(library, str) or not library:
+        raise ConfigError(path, library, "a directory path")
+    directory = Path(library)
+    if base is not None and not directory.is_absolute():
+        directory = base / directory
+    if not directory.is_dir():
+        raise ConfigError(path, library, f"an existing directory ({directory} is none)")
+    return ProgramsConfig(library_dir=directory)
 
 
 def _parse_simulation(s: _Section) -> SimulationConfig:
@@ -519,6 +550,7 @@ def parse_config(data: Any, source: Path | None = None) -> MachineConfig:
     simulation = _parse_simulation(root.section("simulation"))
     modbus = _parse_modbus(root.section("modbus"))
     machine = _parse_machine(root.section("machine"))
+    programs = _parse_programs(root.section("programs"), source.parent if source else None)
     root.finish()
     _check_axes(axes, can)
     if source is not None:
@@ -532,6 +564,7 @@ def parse_config(data: Any, source: Path | None = None) -> MachineConfig:
         modbus=modbus,
         machine=machine,
         source=source,
+        programs=programs,
     )
 
 

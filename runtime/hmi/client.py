@@ -1,14 +1,15 @@
 """A Modbus TCP client for the machine's HMI register map, built on pymodbus.
 
 Implements the protocol of :mod:`runtime.hmi.registers` from the HMI's side: identity check
-(magic, map version, test float), status decoding, commands by sequence counter with their
-acknowledgement, the curve upload (staging writes of at most :data:`CHUNK_REGISTERS` registers
-per FC16, CRC32, commit, wait until the machine has loaded the curve) and the HMI heartbeat.
+(magic, map version), status decoding, commands by sequence counter with the outcome of each
+one's own sequence value (from the request history), the curve upload (staging writes of at most
+:data:`CHUNK_REGISTERS` registers per FC16, CRC32, commit), library programs and the HMI
+heartbeat.
 
 Errors are :class:`~runtime.hmi.HmiError`: :class:`ModbusReplyError` for a Modbus exception
-answer (its code and meaning), :class:`CommandRefused` for a command or commit the server
-refused (with the result code it published), :class:`HmiError` itself for connection
-problems, timeouts and a server that is not a softmotion machine.
+answer (its code and meaning), :class:`CommandRefused` for a command whose outcome is not DONE
+(with its result code and the server's reason), :class:`HmiError` itself for connection
+problems, timeouts and a server that is not a softmotion machine of this map version.
 
 Threading: one client per thread; each call blocks until answered (``timeout_s``).
 """
@@ -25,19 +26,25 @@ from pymodbus.exceptions import ModbusException
 from planner.nurbs import NurbsCurve
 from runtime.commands import CommandCode, CommandResult
 from runtime.hmi import HmiError
+from runtime.hmi.protocol import MAX_READ_REGISTERS, MAX_WRITE_REGISTERS, ExceptionCode
 from runtime.hmi.registers import (
+    BLOCKS,
     FIELD,
+    HISTORY,
     INPUT_SIZE,
     MAGIC,
     MAP_VERSION,
-    MAX_READ_REGISTERS,
-    MAX_WRITE_REGISTERS,
     OVERRIDE_SCALE,
     POINT_REGISTERS,
+    HmiRequest,
     HmiStatus,
     Identity,
-    as_enum,
+    LibraryEntry,
+    LibraryState,
+    StagingControl,
+    Table,
     decode_identity,
+    decode_server,
     decode_status,
 )
 from runtime.hmi.upload import Staging, staging_of
@@ -56,14 +63,35 @@ EXCEPTION_MEANINGS: dict[int, str] = {
 }
 #: Registers per staging write: even (floats are never split) and within the FC16 limit.
 CHUNK_REGISTERS = MAX_WRITE_REGISTERS - 1
-#: Polling interval while waiting for the machine to acknowledge.
+#: Polling interval while waiting for the machine.
 POLL_S = 0.01
 
+_CODE = FIELD["COMMAND_CODE"].address
 _SEQ = FIELD["COMMAND_SEQ"].address
+_PROGRAM = FIELD["PROGRAM_NUMBER"].address
+_LIBRARY_SELECT = FIELD["LIBRARY_SELECT"].address
+_STAGING_CONTROL = FIELD["STAGING_CONTROL"].address
 _HEADER = FIELD["CURVE_DEGREE"].address
 _POINTS = FIELD["POINT_X"].address
 _KNOTS = FIELD["KNOT"].address
 _HEARTBEAT = FIELD["HMI_HEARTBEAT"].address
+_REQUESTS = FIELD["REQUEST_TICKET"]
+
+
+def _read_plan() -> list[tuple[int, int]]:
+    """FC4 requests that read the input image without splitting a block."""
+    plan: list[tuple[int, int]] = []
+    for _title, table, first, end in BLOCKS:
+        if table is not Table.INPUT:
+            continue
+        if plan and end - plan[-1][0] <= MAX_READ_REGISTERS:
+            plan[-1] = (plan[-1][0], end)
+        else:
+            plan.append((first, end))
+    return plan
+
+
+_READ_PLAN = _read_plan()
 
 
 class ModbusReplyError(HmiError):
@@ -76,30 +104,27 @@ class ModbusReplyError(HmiError):
         super().__init__(f"{request}: Modbus exception {exception_code} ({self.meaning})")
 
 
-class CommandRefused(HmiError):
-    """A command (or curve commit) the server refused; nothing was changed.
-
-    ``result`` is the code the server published in ``REQUEST_RESULT`` (``UPLOAD_RESULT`` for a
-    commit), ``exception_code`` the Modbus exception it answered.
-    """
-
-    def __init__(self, command: CommandCode, result: CommandResult | int, exception_code: int):
-        self.command = command
-        self.result = result
-        self.exception_code = exception_code
-        name = result.name if isinstance(result, CommandResult) else str(result)
-        meaning = EXCEPTION_MEANINGS.get(exception_code, "unknown exception")
-        super().__init__(
-            f"{command.name} refused: {name} (Modbus exception {exception_code}, {meaning})"
-        )
-
-
 @dataclass(frozen=True)
 class Outcome:
-    """A command the machine has executed: its sequence value and result."""
+    """A request's outcome: its sequence value, ticket (0 when the server refused it itself),
+    result, and the server's reason for a refusal of its own."""
 
     seq: int
+    ticket: int
     result: CommandResult | int
+    message: str = ""
+
+
+class CommandRefused(HmiError):
+    """A command (or curve commit) whose outcome is not DONE; nothing was changed."""
+
+    def __init__(self, command: CommandCode, outcome: Outcome) -> None:
+        self.command = command
+        self.outcome = outcome
+        self.result = outcome.result
+        name = getattr(outcome.result, "name", str(outcome.result))
+        reason = f": {outcome.message}" if outcome.message else ""
+        super().__init__(f"{command.name} seq {outcome.seq} refused: {name}{reason}")
 
 
 class HmiClient:
@@ -108,7 +133,7 @@ class HmiClient:
     :param host: server address.
     :param port: server TCP port.
     :param unit: unit id sent with every request.
-    :param timeout_s: timeout of one request, and default wait for an acknowledgement.
+    :param timeout_s: timeout of one request, and default wait for an outcome.
     """
 
     def __init__(
@@ -199,8 +224,19 @@ class HmiClient:
     # -- status -------------------------------------------------------------------------------
 
     def status(self) -> HmiStatus:
-        """The machine's status (one FC4 request)."""
-        return decode_status(self.read_input(0, INPUT_SIZE))
+        """The machine's status: one FC4 request per group of whole blocks (each block is one
+        snapshot; the groups may be one period apart)."""
+        image = [0] * INPUT_SIZE
+        for first, end in _READ_PLAN:
+            image[first:end] = self.read_input(first, end - first)
+        return decode_status(image)
+
+    def requests(self) -> tuple[HmiRequest, ...]:
+        """The server's request history, newest first (one FC4 request)."""
+        first, end = _REQUESTS.address, _REQUESTS.end
+        image = [0] * INPUT_SIZE
+        image[first:end] = self.read_input(first, end - first)
+        return decode_server(image).requests
 
     def heartbeat(self) -> int:
         """Advance ``HMI_HEARTBEAT`` (the watchdog's sign of life); returns the value written."""
@@ -226,20 +262,34 @@ class HmiClient:
             if done(status):
                 return status
             if time.monotonic() > deadline:
-                raise HmiError(
-                    f"modbus: timed out waiting for {what or 'the machine'} "
-                    f"(state {status.snapshot.state!r}, message {status.snapshot.message!r})"
+                snapshot = status.snapshot
+                where = (
+                    "the runtime is starting"
+                    if snapshot is None
+                    else f"state {getattr(snapshot.state, 'name', snapshot.state)}, message "
+                    f"{snapshot.message!r}"
                 )
+                raise HmiError(f"modbus: timed out waiting for {what or 'the machine'} ({where})")
             time.sleep(poll_s)
 
     # -- commands -----------------------------------------------------------------------------
 
-    def send(self, code: CommandCode, *, override_percent: float | None = None) -> int:
-        """Write ``code`` (and the override parameter) with a new ``COMMAND_SEQ`` in one FC16;
-        returns the sequence value once the server has queued the command.
+    def send(
+        self,
+        code: CommandCode,
+        *,
+        override_percent: float | None = None,
+        program_number: int | None = None,
+        timeout_s: float | None = None,
+    ) -> int:
+        """Write ``code`` (and its parameter) with a new ``COMMAND_SEQ``; returns the sequence
+        value once the server has taken the request. A full mailbox (exception 6: nothing
+        queued) is tried again until ``timeout_s``.
 
-        :raises CommandRefused: if the server refused it (exception 3 or 6).
+        :raises ModbusReplyError: for any other exception answer (3: a value out of range).
         """
+        if program_number is not None:
+            self.write(_PROGRAM, [program_number])
         seq = (self.read_holding(_SEQ, 1)[0] + 1) & 0xFFFF
         values = [int(code), seq]
         if override_percent is not None:
@@ -247,41 +297,70 @@ class HmiClient:
             if not 0 <= setpoint <= 0xFFFF:
                 raise HmiError(f"override {override_percent:g} %: must be 0 % or more")
             values.append(setpoint)
-        try:
-            self.write(FIELD["COMMAND_CODE"].address, values)
-        except ModbusReplyError as exc:
-            if exc.exception_code not in (3, 6):
-                raise
-            server = self.status().server
-            if code is CommandCode.LOAD_CURVE and server.upload_seq == seq:
-                raise CommandRefused(code, server.upload_result, exc.exception_code) from exc
-            result = server.request_result if server.request_seq == seq else exc.exception_code
-            raise CommandRefused(code, result, exc.exception_code) from exc
-        return seq
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        while True:
+            try:
+                self.write(_CODE, values)
+                return seq
+            except ModbusReplyError as exc:
+                busy = exc.exception_code == ExceptionCode.SERVER_DEVICE_BUSY
+                if not busy or time.monotonic() > deadline:
+                    raise
+            time.sleep(POLL_S)
+
+    def outcome(self, seq: int, code: CommandCode, *, timeout_s: float | None = None) -> Outcome:
+        """Wait for the outcome of the request with sequence value ``seq``.
+
+        :raises HmiError: if it does not come within ``timeout_s``, or the request left the
+            history unseen (more than eight requests since).
+        """
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        while True:
+            requests = self.requests()
+            mine = [r for r in requests if r.seq == seq and r.code == code]
+            if mine and mine[0].result != CommandResult.PENDING:
+                request = mine[0]
+                message = ""
+                if request.ticket == 0 and requests[0] is request:
+                    message = str(self.status().server.request_message)
+                return Outcome(seq, request.ticket, request.result, message)
+            if not mine and len(requests) == HISTORY:
+                raise HmiError(f"modbus: {code.name} seq {seq} left the request history unseen")
+            if time.monotonic() > deadline:
+                raise HmiError(
+                    f"modbus: timed out waiting for the outcome of {code.name} seq {seq}"
+                )
+            time.sleep(POLL_S)
 
     def command(
         self,
         code: CommandCode,
         *,
         override_percent: float | None = None,
+        program_number: int | None = None,
         timeout_s: float | None = None,
     ) -> Outcome:
-        """Send a command and wait until the machine has executed it.
+        """Send a command and wait for its own outcome.
 
-        :raises CommandRefused: if the server refused it.
-        :raises HmiError: if the machine does not acknowledge it in time.
+        :raises CommandRefused: if the outcome is not DONE.
+        :raises HmiError: if no outcome comes in time.
         """
-        seq = self.send(code, override_percent=override_percent)
-        status = self.wait_for(
-            lambda s: s.snapshot.last_command_seq == seq, timeout_s, f"{code.name} seq {seq}"
+        seq = self.send(
+            code,
+            override_percent=override_percent,
+            program_number=program_number,
+            timeout_s=timeout_s,
         )
-        return Outcome(seq, as_enum(CommandResult, status.snapshot.last_command_result))
+        outcome = self.outcome(seq, code, timeout_s=timeout_s)
+        if outcome.result != CommandResult.DONE:
+            raise CommandRefused(code, outcome)
+        return outcome
 
-    # -- curve upload -------------------------------------------------------------------------
+    # -- curve upload and library -------------------------------------------------------------
 
     def stage(self, staging: Staging, *, crc32: int | None = None) -> None:
-        """Write a curve into the staging area: header and CRC32 (``crc32`` overrides the
-        correct one, for tests), then points and knots in chunks."""
+        """Write a curve into the staging area (the first write takes it): header and CRC32
+        (``crc32`` overrides the correct one, for tests), then points and knots in chunks."""
         crc = staging.crc32 if crc32 is None else crc32
         self.write(_HEADER, [*staging.header, crc >> 16, crc & 0xFFFF])
         points_chunk = CHUNK_REGISTERS - CHUNK_REGISTERS % POINT_REGISTERS
@@ -292,12 +371,43 @@ class HmiClient:
             for offset in range(0, len(registers), chunk):
                 self.write(base + offset, registers[offset : offset + chunk])
 
-    def load_curve(self, curve: NurbsCurve | Staging, *, timeout_s: float | None = None) -> Outcome:
-        """Upload, commit and wait until the machine has loaded ``curve``.
+    def abort_upload(self) -> None:
+        """Clear the staging header and give the staging area free."""
+        self.write(_STAGING_CONTROL, [StagingControl.ABORT])
 
-        :raises CommandRefused: if the commit was refused (``result`` is the upload result
-            code: a curve rule, CRC, capacity, or REJECTED_STATE while moving).
+    def load_curve(self, curve: NurbsCurve | Staging, *, timeout_s: float | None = None) -> Outcome:
+        """Upload and commit ``curve``, and wait for the machine to load it (the active program
+        at rest, the next one while moving).
+
+        :raises CommandRefused: if the commit is refused (curve rules, CRC, staging held by
+            another client, ...).
         """
         staging = curve if isinstance(curve, Staging) else staging_of(curve)
         self.stage(staging)
-        return self.command(CommandCode.LOAD_CURVE, timeout_s=timeout_s)
+        return self.command(CommandCode.LOAD_CURVE, program_number=0, timeout_s=timeout_s)
+
+    def load_program(self, number: int, *, timeout_s: float | None = None) -> Outcome:
+        """Load library program ``number``.
+
+        :raises CommandRefused: if it is refused (NO_SUCH_PROGRAM, curve rules, ...).
+        """
+        return self.command(CommandCode.LOAD_CURVE, program_number=number, timeout_s=timeout_s)
+
+    def library_entry(self, number: int, *, timeout_s: float | None = None) -> LibraryEntry:
+        """Library program ``number`` as the server shows it (name, points, length, CRC32);
+        number 0 selects none (and lists the library again)."""
+        return self._browse(number, timeout_s).server.library
+
+    def library_count(self, *, timeout_s: float | None = None) -> int:
+        """The number of library programs, listed again now."""
+        return self._browse(0, timeout_s).server.library_count
+
+    def _browse(self, number: int, timeout_s: float | None) -> HmiStatus:
+        self.write(_LIBRARY_SELECT, [number])
+        return self.wait_for(
+            lambda s: (
+                s.server.library.number == number and s.server.library.state != LibraryState.READING
+            ),
+            timeout_s,
+            f"library program {number}",
+        )

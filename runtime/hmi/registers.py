@@ -6,14 +6,15 @@ this table. Conventions (reference/modbus-hmi.md §5, §6):
 
 - addresses are 0-based PDU addresses (1-based tools such as ``mbpoll -r`` add 1);
 - 16-bit values are unsigned; 32-bit values (u32, f32 IEEE 754) take two registers, high word
-  first (ABCD), at an even address; text is ASCII, two characters per register, first character
-  in the high byte, padded with NUL;
+  first (ABCD), at an even address; text is ASCII (other characters spelled in ASCII: '±' is
+  '+/-'), two characters per register, first character in the high byte, padded with NUL;
 - status lives in input registers (FC4), read-only; commands, parameters and the curve staging
   area live in holding registers (FC3 read, FC6/FC16/FC23 write).
 
-The input image is one contiguous block of :data:`INPUT_SIZE` registers (one FC4 request reads
-it all); reserved input registers read 0. Holding registers exist only where a field is; other
-holding addresses answer exception 2.
+The input image is one contiguous block of :data:`INPUT_SIZE` registers; reserved input registers
+read 0. Holding registers 0 to the end of the staging header (:data:`HOLDING_HEAD_END`) are
+contiguous (reserved ones read 0 and take only 0), then the staging data; other holding
+addresses answer exception 2.
 
 Pure: no I/O, no threads.
 """
@@ -22,11 +23,19 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Sequence
+import unicodedata
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum, IntEnum
 
-from runtime.commands import OVERRIDE_MAX_PERCENT, CommandCode, CommandResult
+from drives.cia402 import State as DriveState
+from runtime.commands import (
+    OVERRIDE_MAX_PERCENT,
+    CommandCode,
+    CommandOrigin,
+    CommandRecord,
+    CommandResult,
+)
 from runtime.status import (
     FAULT_TEXTS,
     AxisStatus,
@@ -34,14 +43,17 @@ from runtime.status import (
     Fault,
     FaultKind,
     MachineState,
+    MotionPhase,
+    ProgramStatus,
     StatusSnapshot,
+    WatchdogState,
 )
 from runtime.version import version_numbers
 
 #: Identity magic: "SM" in ASCII.
 MAGIC = 0x534D
 #: Version of this register map; bumped on any change of an address or a meaning.
-MAP_VERSION = 1
+MAP_VERSION = 2
 #: Test pattern of the identity block: 123456.0 reads [0x47F1, 0x2000] in ABCD order.
 TEST_FLOAT = 123456.0
 TEST_U32 = 0x12345678
@@ -56,9 +68,18 @@ MAX_DEGREE = 7
 MAX_KNOTS = MAX_POINTS + MAX_DEGREE + 1
 #: Override parameter and status unit: 0.1 %, so 1000 = 100.0 %.
 OVERRIDE_SCALE = 10
-#: Most registers one FC16 request may write (Modbus limit; FC3/FC4 read 125).
-MAX_WRITE_REGISTERS = 123
-MAX_READ_REGISTERS = 125
+#: Entries of the command and request histories.
+HISTORY = 8
+#: Characters of MESSAGE and REQUEST_MESSAGE; longer texts end in '...'.
+MESSAGE_CHARS = 240
+#: Characters of a program name.
+NAME_CHARS = 64
+#: MACHINE_STATE before the runtime has published its first status.
+STATE_STARTING = 0xFFFF
+#: AXIS_DRIVE_STATE when the statusword matches no CiA 402 state.
+DRIVE_STATE_UNKNOWN = 0xFFFF
+#: Commands an HMI may send (SHUTDOWN is the supervisor's).
+HMI_COMMANDS = tuple(code for code in CommandCode if code is not CommandCode.SHUTDOWN)
 
 _F32_MAX = 3.4028234663852886e38
 
@@ -88,16 +109,70 @@ class AccessFlag(IntEnum):
     """The HMI link watchdog is on (timeout in ``WATCHDOG_TIMEOUT_MS``)."""
 
 
-class WatchdogState(IntEnum):
-    """Values of ``WATCHDOG_STATE``."""
+class StatusBit(IntEnum):
+    """Bits of ``STATUS_WORD``."""
 
-    OFF = 0
-    """No watchdog configured (or the server is read-only)."""
-    WATCHING = 1
-    """The HMI heartbeat is changing, or the machine is not moving."""
-    TRIPPED = 2
-    """The heartbeat stopped while moving; hold or stop was sent. Re-armed by the next heartbeat
-    change or command."""
+    ENABLED = 1 << 0
+    """Drives in operation: STANDBY, MOVING, HOLDING or STOPPING."""
+    MOVING = 1 << 1
+    """MACHINE_STATE is MOVING (the approach move included)."""
+    HOLDING = 1 << 2
+    """MACHINE_STATE is HOLDING."""
+    STOPPING = 1 << 3
+    """MACHINE_STATE is STOPPING."""
+    FAULT = 1 << 4
+    """MACHINE_STATE is ERROR_STOP (FAULT_KIND says why)."""
+    IN_POSITION = 1 << 5
+    """At rest with every enabled axis within its following-error window of its target."""
+    PROGRAM_LOADED = 1 << 6
+    """A program is loaded (PROGRAM_ID[0] is not 0)."""
+    NEXT_PROGRAM = 1 << 7
+    """A next program waits (PROGRAM_ID[1] is not 0)."""
+    APPROACH = 1 << 8
+    """The straight approach move to the program's start (MOTION_PHASE APPROACH)."""
+    BRAKING = 1 << 9
+    """Braking to rest on the path (MOTION_PHASE BRAKING)."""
+    WATCHDOG_TRIPPED = 1 << 10
+    """The HMI link watchdog fired (WATCHDOG_STATE TRIPPED)."""
+    STAGING_HELD = 1 << 11
+    """A client holds the staging area (STAGING_STATE HELD)."""
+    STATUS_VALID = 1 << 15
+    """The runtime has published its status; 0 while it starts (MACHINE_STATE 65535)."""
+
+
+class StagingState(IntEnum):
+    """Values of ``STAGING_STATE``."""
+
+    FREE = 0
+    """No client holds the staging area: the next staging write takes it."""
+    HELD = 1
+    """A client (STAGING_OWNER_*) holds it; other clients' staging writes answer exception 2."""
+
+
+class StagingControl(IntEnum):
+    """Values written to ``STAGING_CONTROL`` (it reads 0)."""
+
+    NONE = 0
+    """Nothing (a block write that carries the register unchanged)."""
+    TAKE = 1
+    """Take the staging area, or restart the hold's timeout when this client holds it."""
+    ABORT = 2
+    """Abort the upload: clear the staging header and give the area free."""
+
+
+class LibraryState(IntEnum):
+    """Values of ``LIBRARY_STATE``."""
+
+    NONE = 0
+    """No program selected (LIBRARY_SELECT is 0)."""
+    READING = 1
+    """The selected file is being read and checked."""
+    VALID = 2
+    """The selected program can be loaded; its name, points, length and CRC32 are shown."""
+    INVALID = 3
+    """The selected file is not a curve this machine can run (LIBRARY_RESULT says why)."""
+    NOT_FOUND = 4
+    """No program has that number (see LIBRARY_COUNT)."""
 
 
 @dataclass(frozen=True)
@@ -108,7 +183,7 @@ class Field:
     :param repeat: number of elements of an array field; element ``i`` starts at
         ``address + i * stride``.
     :param registers: width of an ASCII field in registers (other kinds have a fixed width).
-    :param maximum: largest value a write may carry (u16 holding fields; larger → exception 3).
+    :param maximum: largest value a write may carry (u16 holding fields; larger: exception 3).
     :param values: the enum whose members the field holds, for the document.
     """
 
@@ -144,25 +219,103 @@ class Field:
 
 
 def _u16(name: str, table: Table, address: int, description: str, **kw: object) -> Field:
-    return Field(name, table, address, Kind.U16, description, **kw)
+    return Field(name, table, address, Kind.U16, description, **kw)  # type: ignore[arg-type]
+
+
+def _ascii(name: str, address: int, chars: int, description: str, **kw: object) -> Field:
+    return Field(name, _I, address, Kind.ASCII, description, registers=chars // 2, **kw)  # type: ignore[arg-type]
 
 
 _I, _H = Table.INPUT, Table.HOLDING
-_AXIS_BASE, _AXIS_STRIDE = 56, 10
+_COMMANDS_BASE, _REQUESTS_BASE, _HISTORY_STRIDE = 48, 96, 6
+_AXIS_BASE, _AXIS_STRIDE = 144, 12
+_STATS_BASE = 180
+_PROGRAM_BASE, _PROGRAM_STRIDE = 196, 38
+_LIBRARY_BASE = 272
+_MESSAGE_BASE = 320
+_REQUEST_MESSAGE_BASE = _MESSAGE_BASE + MESSAGE_CHARS // 2
+_HEADER_BASE = 16
 _POINT_BASE, _POINT_STRIDE = 1000, 8
 _KNOT_BASE = _POINT_BASE + _POINT_STRIDE * MAX_POINTS
 
-#: Blocks of the map in document order: (title, table, first address, end address).
+#: One past the staging header: holding registers 0 .. HOLDING_HEAD_END - 1 are contiguous.
+HOLDING_HEAD_END = _HEADER_BASE + 6
+
+#: Blocks of the map in document order: (title, table, first address, end address). Every
+#: block but the staging data fits one request.
 BLOCKS: tuple[tuple[str, Table, int, int], ...] = (
     ("Identity", _I, 0, 16),
-    ("Machine status", _I, 16, 40),
-    ("Cycle statistics", _I, 40, 56),
-    ("Axes", _I, 56, 86),
-    ("Message", _I, 86, 118),
-    ("Commands", _H, 0, 4),
-    ("Curve staging header", _H, 16, 22),
+    ("Machine status", _I, 16, _COMMANDS_BASE),
+    ("Commands judged by the machine", _I, _COMMANDS_BASE, _REQUESTS_BASE),
+    ("HMI requests", _I, _REQUESTS_BASE, _AXIS_BASE),
+    ("Axes", _I, _AXIS_BASE, _STATS_BASE),
+    ("Cycle statistics", _I, _STATS_BASE, _PROGRAM_BASE),
+    ("Programs", _I, _PROGRAM_BASE, _LIBRARY_BASE),
+    ("Program library", _I, _LIBRARY_BASE, _MESSAGE_BASE),
+    ("Message", _I, _MESSAGE_BASE, _REQUEST_MESSAGE_BASE),
+    ("Request message", _I, _REQUEST_MESSAGE_BASE, _REQUEST_MESSAGE_BASE + MESSAGE_CHARS // 2),
+    ("Commands and parameters", _H, 0, _HEADER_BASE),
+    ("Curve staging header", _H, _HEADER_BASE, HOLDING_HEAD_END),
     ("Curve staging data", _H, _POINT_BASE, _KNOT_BASE + 2 * MAX_KNOTS),
 )
+
+
+def _history(
+    base: int, names: Sequence[tuple[str, int, Kind, str, type[IntEnum] | None]]
+) -> list[Field]:
+    return [
+        Field(
+            name,
+            _I,
+            base + offset,
+            kind,
+            description,
+            repeat=HISTORY,
+            stride=_HISTORY_STRIDE,
+            values=values,
+        )
+        for name, offset, kind, description, values in names
+    ]
+
+
+def _axis(name: str, offset: int, kind: Kind, description: str, **kw: object) -> Field:
+    return Field(
+        name,
+        _I,
+        _AXIS_BASE + offset,
+        kind,
+        description,
+        repeat=MAX_AXES,
+        stride=_AXIS_STRIDE,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _program(name: str, offset: int, kind: Kind, description: str, **kw: object) -> Field:
+    return Field(
+        name,
+        _I,
+        _PROGRAM_BASE + offset,
+        kind,
+        description,
+        repeat=2,
+        stride=_PROGRAM_STRIDE,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _point(name: str, offset: int, description: str, **kw: object) -> Field:
+    return Field(
+        name,
+        _H,
+        _POINT_BASE + offset,
+        Kind.F32,
+        description,
+        repeat=MAX_POINTS,
+        stride=_POINT_STRIDE,
+        **kw,  # type: ignore[arg-type]
+    )
+
 
 FIELDS: tuple[Field, ...] = (
     # Identity (constant while the server runs).
@@ -176,123 +329,201 @@ FIELDS: tuple[Field, ...] = (
     _u16("AXIS_COUNT", _I, 9, f"configured axes (at most {MAX_AXES})"),
     _u16("STAGING_MAX_POINTS", _I, 10, "control points the staging area holds"),
     _u16("STAGING_MAX_DEGREE", _I, 11, "highest degree the staging header accepts"),
-    _u16("ACCESS_FLAGS", _I, 12, "bit 0 read-only server, bit 1 watchdog on", values=AccessFlag),
+    _u16("ACCESS_FLAGS", _I, 12, "bits: read-only server, watchdog on", values=AccessFlag),
     _u16("UNIT_ID", _I, 13, "configured unit id (the server also answers 0 and 255)"),
     Field("WATCHDOG_TIMEOUT_MS", _I, 14, Kind.U32, "HMI watchdog timeout, 0 = off", unit="ms"),
     # Machine status.
-    _u16("HEARTBEAT", _I, 16, "runtime heartbeat: +1 per cycle (wraps at 65535)"),
-    _u16("MACHINE_STATE", _I, 17, "machine state", values=MachineState),
-    _u16("FAULT_KIND", _I, 18, "active fault (index of the fault texts)", values=FaultKind),
-    _u16("FAULT_EMCY_CODE", _I, 19, "EMCY error code of the faulted drive, 0 = none"),
-    _u16("FAULT_AXIS", _I, 20, "faulted axis, 1-based (0 = none or not axis-specific)"),
-    _u16("OVERRIDE", _I, 21, "feed override in effect", unit="0.1 %"),
-    Field("PATH_FEED", _I, 22, Kind.F32, "path feed (speed along the curve)", unit="mm/s"),
-    Field("PATH_POSITION", _I, 24, Kind.F32, "distance travelled along the curve", unit="mm"),
-    Field("PATH_LENGTH", _I, 26, Kind.F32, "length of the loaded curve", unit="mm"),
-    _u16("PATH_PROGRESS", _I, 28, "progress along the curve, 0..1000", unit="‰"),
-    _u16("WATCHDOG_STATE", _I, 29, "HMI link watchdog", values=WatchdogState),
-    _u16("COMMAND_SEQ_ACK", _I, 30, "COMMAND_SEQ of the last command the machine executed"),
-    _u16("COMMAND_RESULT", _I, 31, "its result", values=CommandResult),
-    _u16("REQUEST_SEQ", _I, 32, "COMMAND_SEQ of the last command write the server judged"),
+    _u16("HEARTBEAT", _I, 16, "runtime heartbeat: +1 per cycle, 65535 wraps to 0"),
     _u16(
-        "REQUEST_RESULT",
+        "MACHINE_STATE",
         _I,
-        33,
-        "its result: PENDING when queued, the refusal when answered with an exception, "
-        "then the machine's result once executed",
+        17,
+        f"machine state; {STATE_STARTING} while the runtime starts (no status yet: the other "
+        "status registers read 0, axis positions NaN)",
+        values=MachineState,
+    ),
+    _u16("STATUS_WORD", _I, 18, "status bits", values=StatusBit),
+    _u16(
+        "MOTION_PHASE",
+        _I,
+        19,
+        "what the setpoint does (APPROACH: the straight move to the program's start)",
+        values=MotionPhase,
+    ),
+    _u16("FAULT_KIND", _I, 20, "the fault that caused the error stop", values=FaultKind),
+    _u16("FAULT_EMCY_CODE", _I, 21, "EMCY error code of the faulted drive, 0 = none"),
+    _u16("FAULT_AXIS", _I, 22, "faulted axis, 1-based (0 = none or not axis-specific)"),
+    _u16("LATER_FAULTS", _I, 23, "faults reported after the first one, until the reset"),
+    Field("PATH_FEED", _I, 24, Kind.F32, "path feed (speed along the path)", unit="mm/s"),
+    Field(
+        "PATH_POSITION",
+        _I,
+        26,
+        Kind.F32,
+        "distance travelled along the current path: the approach line during APPROACH, the "
+        "program's curve otherwise",
+        unit="mm",
+    ),
+    Field(
+        "PATH_LENGTH",
+        _I,
+        28,
+        Kind.F32,
+        "length of the current path (the approach line during APPROACH)",
+        unit="mm",
+    ),
+    _u16("PATH_PROGRESS", _I, 30, "PATH_POSITION / PATH_LENGTH, 0..1000", unit="‰"),
+    _u16("OVERRIDE", _I, 31, "feed override in effect", unit="0.1 %"),
+    _u16("WATCHDOG_STATE", _I, 32, "HMI link watchdog (run by the cycle)", values=WatchdogState),
+    _u16("UPLOAD_SEQ", _I, 33, "COMMAND_SEQ of the last LOAD_CURVE request"),
+    _u16("UPLOAD_RESULT", _I, 34, "its result", values=CommandResult),
+    _u16("STAGING_STATE", _I, 35, "who may write the staging area", values=StagingState),
+    Field(
+        "STAGING_OWNER_IP",
+        _I,
+        36,
+        Kind.U32,
+        "IPv4 address of the client holding the staging area (0 when free or IPv6)",
+    ),
+    _u16("STAGING_OWNER_PORT", _I, 38, "TCP port of that client's connection"),
+    Field(
+        "STAGING_HOLD_LEFT_MS",
+        _I,
+        40,
+        Kind.U32,
+        "time until the hold lapses without a staging write",
+        unit="ms",
+    ),
+    Field(
+        "STAGING_TIMEOUT_MS",
+        _I,
+        42,
+        Kind.U32,
+        "how long a hold lasts after the holder's last staging write",
+        unit="ms",
+    ),
+    # Commands judged by the machine, any origin; element 0 is the last one.
+    *_history(
+        _COMMANDS_BASE,
+        [
+            ("COMMAND_TICKET", 0, Kind.U32, "runtime-wide ticket of the command (0 = none)", None),
+            ("COMMAND_SEQ_ACK", 2, Kind.U16, "its COMMAND_SEQ (0 when not from an HMI)", None),
+            ("COMMAND_CODE_ACK", 3, Kind.U16, "its command code", CommandCode),
+            ("COMMAND_ORIGIN", 4, Kind.U16, "who sent it", CommandOrigin),
+            ("COMMAND_RESULT", 5, Kind.U16, "its result", CommandResult),
+        ],
+    ),
+    # This server's requests (COMMAND_SEQ changes); element 0 is the last one.
+    *_history(
+        _REQUESTS_BASE,
+        [
+            (
+                "REQUEST_TICKET",
+                0,
+                Kind.U32,
+                "ticket of the command posted for it (0 = refused by the server, not posted)",
+                None,
+            ),
+            ("REQUEST_SEQ", 2, Kind.U16, "the COMMAND_SEQ value written", None),
+            ("REQUEST_CODE", 3, Kind.U16, "the command code", CommandCode),
+            (
+                "REQUEST_RESULT",
+                4,
+                Kind.U16,
+                "PENDING until the machine has judged it, then its result",
+                CommandResult,
+            ),
+        ],
+    ),
+    # Axes: element i = configured axis i (registers of absent axes read 0).
+    _axis("AXIS_COMMANDED", 0, Kind.F32, "commanded position (target sent)", unit="mm"),
+    _axis("AXIS_ACTUAL", 2, Kind.F32, "actual position (drive feedback)", unit="mm"),
+    _axis(
+        "AXIS_FOLLOWING_ERROR",
+        4,
+        Kind.F32,
+        "actual position minus the target commanded for that instant (positive: the axis is "
+        "ahead of its target in its positive direction)",
+        unit="mm",
+    ),
+    _axis(
+        "AXIS_DRIVE_STATE",
+        6,
+        Kind.U16,
+        f"CiA 402 state of the drive; {DRIVE_STATE_UNKNOWN} when the statusword matches none",
+        values=DriveState,
+    ),
+    _axis("AXIS_STATUSWORD", 7, Kind.U16, "raw CiA 402 statusword 0x6041 of the last feedback"),
+    _axis("AXIS_NODE_ID", 8, Kind.U16, "CANopen node id of the drive"),
+    _axis("AXIS_NAME", 10, Kind.ASCII, "axis name (4 characters)", registers=2),
+    # Cycle statistics.
+    Field(
+        "CYCLE_COUNT",
+        _I,
+        _STATS_BASE,
+        Kind.U32,
+        "cycles since start; 4294967295 wraps to 0 (after 198 days at 4 ms)",
+    ),
+    *(
+        Field(name, _I, _STATS_BASE + 2 + 2 * i, Kind.U32, text, unit="µs")
+        for i, (name, text) in enumerate(
+            (
+                ("LATENESS_LAST_US", "wake-up lateness, last cycle"),
+                ("LATENESS_P50_US", "wake-up lateness, median"),
+                ("LATENESS_P99_US", "wake-up lateness, 99th percentile"),
+                ("LATENESS_MAX_US", "wake-up lateness, maximum"),
+                ("EXECUTION_LAST_US", "cycle execution time, last"),
+                ("EXECUTION_MAX_US", "cycle execution time, maximum"),
+            )
+        )
+    ),
+    Field("MISSED_PERIODS", _I, _STATS_BASE + 14, Kind.U32, "periods skipped: a cycle was late"),
+    # Programs: element 0 the active program, 1 the next one.
+    _program("PROGRAM_ID", 0, Kind.U32, "program id (0 = none)"),
+    _program(
+        "PROGRAM_CRC32",
+        2,
+        Kind.U32,
+        "staging CRC32 of an uploaded program, the file's CRC32 for a library program",
+    ),
+    _program("PROGRAM_LENGTH", 4, Kind.F32, "length of its curve", unit="mm"),
+    _program("PROGRAM_NAME", 6, Kind.ASCII, "its name", registers=NAME_CHARS // 2),
+    # Program library: the program LIBRARY_SELECT names.
+    _u16("LIBRARY_NUMBER", _I, _LIBRARY_BASE, "the program shown (LIBRARY_SELECT when read)"),
+    _u16("LIBRARY_STATE", _I, _LIBRARY_BASE + 1, "the program shown", values=LibraryState),
+    _u16(
+        "LIBRARY_RESULT",
+        _I,
+        _LIBRARY_BASE + 2,
+        "why it cannot be loaded (INVALID)",
         values=CommandResult,
     ),
-    _u16("UPLOAD_SEQ", _I, 34, "COMMAND_SEQ of the last curve commit"),
-    _u16("UPLOAD_RESULT", _I, 35, "result of the last curve commit", values=CommandResult),
-    Field("LOADED_CURVE_ID", _I, 36, Kind.U32, "id of the loaded curve (0 = none)"),
-    Field(
-        "LOADED_CURVE_CRC32",
-        _I,
-        38,
-        Kind.U32,
-        "staging CRC32 of the loaded curve (0 = from a file)",
-    ),
-    # Cycle statistics.
-    Field("CYCLE_COUNT", _I, 40, Kind.U32, "cycles since start"),
-    Field("LATENESS_LAST_US", _I, 42, Kind.U32, "wake-up lateness, last cycle", unit="µs"),
-    Field("LATENESS_P50_US", _I, 44, Kind.U32, "wake-up lateness, median", unit="µs"),
-    Field("LATENESS_P99_US", _I, 46, Kind.U32, "wake-up lateness, 99th percentile", unit="µs"),
-    Field("LATENESS_MAX_US", _I, 48, Kind.U32, "wake-up lateness, maximum", unit="µs"),
-    Field("EXECUTION_LAST_US", _I, 50, Kind.U32, "cycle execution time, last", unit="µs"),
-    Field("EXECUTION_MAX_US", _I, 52, Kind.U32, "cycle execution time, maximum", unit="µs"),
-    Field("MISSED_PERIODS", _I, 54, Kind.U32, "periods skipped because a cycle was late"),
-    # Axes: element i = configured axis i (registers of absent axes read 0).
-    Field(
-        "AXIS_COMMANDED",
-        _I,
-        _AXIS_BASE,
-        Kind.F32,
-        "commanded position",
-        unit="mm",
-        repeat=MAX_AXES,
-        stride=_AXIS_STRIDE,
-    ),
-    Field(
-        "AXIS_ACTUAL",
-        _I,
-        _AXIS_BASE + 2,
-        Kind.F32,
-        "actual position (drive feedback)",
-        unit="mm",
-        repeat=MAX_AXES,
-        stride=_AXIS_STRIDE,
-    ),
-    Field(
-        "AXIS_FOLLOWING_ERROR",
-        _I,
-        _AXIS_BASE + 4,
-        Kind.F32,
-        "following error",
-        unit="mm",
-        repeat=MAX_AXES,
-        stride=_AXIS_STRIDE,
-    ),
-    _u16(
-        "AXIS_DRIVE_STATE",
-        _I,
-        _AXIS_BASE + 6,
-        "CiA 402 state of the drive (drives.cia402.State value)",
-        repeat=MAX_AXES,
-        stride=_AXIS_STRIDE,
-    ),
-    _u16(
-        "AXIS_NODE_ID",
-        _I,
-        _AXIS_BASE + 7,
-        "CANopen node id of the drive",
-        repeat=MAX_AXES,
-        stride=_AXIS_STRIDE,
-    ),
-    Field(
-        "AXIS_NAME",
-        _I,
-        _AXIS_BASE + 8,
-        Kind.ASCII,
-        "axis name (4 characters)",
-        repeat=MAX_AXES,
-        stride=_AXIS_STRIDE,
-        registers=2,
-    ),
-    Field(
+    _u16("LIBRARY_COUNT", _I, _LIBRARY_BASE + 3, "programs in the library (at the last listing)"),
+    Field("LIBRARY_POINTS", _I, _LIBRARY_BASE + 4, Kind.U32, "control points of its curve"),
+    Field("LIBRARY_LENGTH", _I, _LIBRARY_BASE + 6, Kind.F32, "length of its curve", unit="mm"),
+    Field("LIBRARY_CRC32", _I, _LIBRARY_BASE + 8, Kind.U32, "CRC32 (zlib) of the file's bytes"),
+    _ascii("LIBRARY_NAME", _LIBRARY_BASE + 16, NAME_CHARS, "file name, without the directory"),
+    _ascii(
         "MESSAGE",
-        _I,
-        86,
-        Kind.ASCII,
-        "reason of the last state change, e.g. 'hold by hmi watchdog' (64 characters)",
-        registers=32,
+        _MESSAGE_BASE,
+        MESSAGE_CHARS,
+        "the machine's reason for its last state change, whole (e.g. 'error stop: following "
+        "error +1.2 mm beyond +/-1 mm for 6 cycles')",
     ),
-    # Commands.
+    _ascii(
+        "REQUEST_MESSAGE",
+        _REQUEST_MESSAGE_BASE,
+        MESSAGE_CHARS,
+        "why the server refused the last request itself (curve rules, CRC, staging held, "
+        "unknown program); empty after an accepted one",
+    ),
+    # Commands and parameters.
     _u16(
         "COMMAND_CODE",
         _H,
         0,
         "command to run at the next COMMAND_SEQ change (0 = none)",
-        maximum=max(CommandCode),
+        maximum=max(HMI_COMMANDS),
         values=CommandCode,
     ),
     _u16("COMMAND_SEQ", _H, 1, "sequence counter: a new value runs COMMAND_CODE once"),
@@ -305,69 +536,74 @@ FIELDS: tuple[Field, ...] = (
         maximum=round(OVERRIDE_MAX_PERCENT * OVERRIDE_SCALE),
     ),
     _u16("HMI_HEARTBEAT", _H, 3, "HMI heartbeat: change it at least every watchdog timeout"),
+    _u16(
+        "PROGRAM_NUMBER",
+        _H,
+        4,
+        "parameter of LOAD_CURVE: 0 = the staging area, n = library program n",
+    ),
+    _u16(
+        "LIBRARY_SELECT",
+        _H,
+        5,
+        "library program to show in the library registers (0 = none); every write lists the "
+        "directory again",
+    ),
+    _u16(
+        "STAGING_CONTROL",
+        _H,
+        15,
+        "take the staging area or abort the upload (reads 0)",
+        maximum=max(StagingControl),
+        values=StagingControl,
+    ),
     # Curve staging header.
-    _u16("CURVE_DEGREE", _H, 16, f"degree p, 1..{MAX_DEGREE}"),
-    _u16("CURVE_DIMENSION", _H, 17, "coordinates per point, 2 or 3"),
-    _u16("CURVE_POINTS", _H, 18, f"number of control points n, at most {MAX_POINTS}"),
-    _u16("CURVE_KNOTS", _H, 19, "number of knots, n + p + 1"),
-    Field("CURVE_CRC32", _H, 20, Kind.U32, "CRC32 of the staged data (see below)"),
+    _u16("CURVE_DEGREE", _H, _HEADER_BASE, f"degree p, 1..{MAX_DEGREE}", maximum=MAX_DEGREE),
+    _u16("CURVE_DIMENSION", _H, _HEADER_BASE + 1, "coordinates per point, 2 or 3", maximum=3),
+    _u16(
+        "CURVE_POINTS",
+        _H,
+        _HEADER_BASE + 2,
+        f"number of control points n, at most {MAX_POINTS}",
+        maximum=MAX_POINTS,
+    ),
+    _u16(
+        "CURVE_KNOTS",
+        _H,
+        _HEADER_BASE + 3,
+        f"number of knots, n + p + 1, at most {MAX_KNOTS}",
+        maximum=MAX_KNOTS,
+    ),
+    Field("CURVE_CRC32", _H, _HEADER_BASE + 4, Kind.U32, "CRC32 of the staged data (see below)"),
     # Curve staging data.
-    Field(
-        "POINT_X",
-        _H,
-        _POINT_BASE,
-        Kind.F32,
-        "control point x",
-        unit="mm",
-        repeat=MAX_POINTS,
-        stride=_POINT_STRIDE,
+    _point("POINT_X", 0, "control point x", unit="mm"),
+    _point("POINT_Y", 2, "control point y", unit="mm"),
+    _point(
+        "POINT_Z", 4, "control point z (write 0 for planar curves; covered by the CRC)", unit="mm"
     ),
-    Field(
-        "POINT_Y",
-        _H,
-        _POINT_BASE + 2,
-        Kind.F32,
-        "control point y",
-        unit="mm",
-        repeat=MAX_POINTS,
-        stride=_POINT_STRIDE,
-    ),
-    Field(
-        "POINT_Z",
-        _H,
-        _POINT_BASE + 4,
-        Kind.F32,
-        "control point z (write 0 for planar curves; covered by the CRC)",
-        unit="mm",
-        repeat=MAX_POINTS,
-        stride=_POINT_STRIDE,
-    ),
-    Field(
-        "POINT_WEIGHT",
-        _H,
-        _POINT_BASE + 6,
-        Kind.F32,
-        "weight of the control point, > 0",
-        repeat=MAX_POINTS,
-        stride=_POINT_STRIDE,
-    ),
+    _point("POINT_WEIGHT", 6, "weight of the control point, > 0"),
     Field("KNOT", _H, _KNOT_BASE, Kind.F32, "knot value", repeat=MAX_KNOTS, stride=2),
 )
 
 FIELD: dict[str, Field] = {f.name: f for f in FIELDS}
 
 #: Size of the input register image.
-INPUT_SIZE = max(f.end for f in FIELDS if f.table is Table.INPUT)
+INPUT_SIZE = max(end for _title, table, _first, end in BLOCKS if table is Table.INPUT)
+#: Size of the holding register image (staging data included).
+HOLDING_SIZE = max(end for _title, table, _first, end in BLOCKS if table is Table.HOLDING)
 #: Registers per staged control point (x, y, z, weight as f32).
 POINT_REGISTERS = _POINT_STRIDE
 
 
+_F32 = struct.Struct(">f")
+_WORDS = struct.Struct(">HH")
+
+
 def f32_words(value: float) -> tuple[int, int]:
     """``value`` as float32, high word first; beyond the float32 range it becomes ±inf."""
-    if math.isfinite(value) and abs(value) > _F32_MAX:
+    if abs(value) > _F32_MAX and math.isfinite(value):
         value = math.copysign(math.inf, value)
-    hi, lo = struct.unpack(">HH", struct.pack(">f", value))
-    return hi, lo
+    return _WORDS.unpack(_F32.pack(value))  # type: ignore[return-value]
 
 
 def u32_words(value: int) -> tuple[int, int]:
@@ -386,10 +622,52 @@ def words_u32(hi: int, lo: int) -> int:
     return (hi << 16) | lo
 
 
+#: ASCII spellings of the non-ASCII characters runtime messages use.
+_ASCII_SPELLINGS = str.maketrans(
+    {
+        "±": "+/-",
+        "µ": "u",
+        "μ": "u",
+        "°": " deg",
+        "×": "x",
+        "÷": "/",
+        "≤": "<=",
+        "≥": ">=",
+        "≠": "!=",
+        "≈": "~",
+        "→": "->",
+        "←": "<-",
+        "–": "-",
+        "—": "-",
+        "‘": "'",
+        "’": "'",
+        "“": '"',
+        "”": '"',
+        "…": "...",
+        "‰": " permille",
+        "²": "^2",
+        "³": "^3",
+        "\u00a0": " ",
+    }
+)
+
+
+def ascii_text(text: str) -> str:
+    """``text`` in ASCII: known symbols spelled out ('±' → '+/-'), accents dropped ('é' → 'e'),
+    anything else '?'."""
+    spelled = unicodedata.normalize("NFKD", text.translate(_ASCII_SPELLINGS))
+    kept = "".join(c for c in spelled if not unicodedata.combining(c))
+    return kept.encode("ascii", "replace").decode("ascii")
+
+
 def ascii_words(text: str, registers: int) -> list[int]:
-    """``text`` as ASCII (others → '?'), truncated and NUL-padded to ``registers`` registers."""
-    data = text.encode("ascii", "replace")[: 2 * registers].ljust(2 * registers, b"\0")
-    return list(struct.unpack(f">{registers}H", data))
+    """``text`` in ASCII (:func:`ascii_text`), NUL-padded to ``registers`` registers; a longer
+    text is cut and ends in '...'."""
+    data = ascii_text(text).encode("ascii")
+    capacity = 2 * registers
+    if len(data) > capacity:
+        data = data[: capacity - 3] + b"..."
+    return list(struct.unpack(f">{registers}H", data.ljust(capacity, b"\0")))
 
 
 def words_ascii(words: Sequence[int]) -> str:
@@ -400,14 +678,59 @@ def words_ascii(words: Sequence[int]) -> str:
 def put(image: list[int], field: Field, value: float | str, index: int = 0) -> None:
     """Write ``value`` into ``image`` (a register list from address 0) at ``field[index]``."""
     at = field.address_of(index)
-    if field.kind is Kind.U16:
-        image[at] = min(max(int(value), 0), 0xFFFF)
-    elif field.kind is Kind.U32:
-        image[at : at + 2] = u32_words(int(value))
-    elif field.kind is Kind.F32:
-        image[at : at + 2] = f32_words(float(value))
-    else:
+    if field.kind is Kind.ASCII:
         image[at : at + field.registers] = ascii_words(str(value), field.registers)
+    else:
+        _put_row(image, ((at, field.kind),), (value,))  # type: ignore[arg-type]
+
+
+#: Where a row of numeric values goes: (first register, kind) per value.
+_Layout = tuple[tuple[int, Kind], ...]
+_FORMATS = {Kind.U16: "H", Kind.U32: "I", Kind.F32: "f"}
+
+
+def _put_row(image: list[int], layout: _Layout, values: Sequence[float]) -> None:
+    """Write numeric ``values`` at ``layout``, each clamped to its kind's range."""
+    for (at, kind), value in zip(layout, values, strict=True):
+        if kind is Kind.U16:
+            image[at] = min(max(int(value), 0), 0xFFFF)
+        elif kind is Kind.F32:
+            image[at : at + 2] = f32_words(float(value))
+        else:
+            image[at : at + 2] = u32_words(int(value))
+
+
+class _Row:
+    """Numeric fields the status encoder writes together: each run of adjacent fields is packed
+    by one precompiled struct (a value out of its kind's range falls back to clamping)."""
+
+    def __init__(self, names: Sequence[str], index: int = 0) -> None:
+        self.layout: _Layout = tuple(
+            (FIELD[name].address_of(index), FIELD[name].kind) for name in names
+        )
+        runs: list[tuple[int, int, str]] = []  # first register, first value, formats
+        end = -1
+        for i, (at, kind) in enumerate(self.layout):
+            if at == end:
+                first, start, formats = runs[-1]
+                runs[-1] = (first, start, formats + _FORMATS[kind])
+            else:
+                runs.append((at, i, _FORMATS[kind]))
+            end = at + (1 if kind is Kind.U16 else 2)
+        self._runs = [
+            (first, start, start + len(formats), struct.Struct(">" + formats))
+            for first, start, formats in runs
+        ]
+        self._words = [struct.Struct(f">{packer.size // 2}H") for *_, packer in self._runs]
+
+    def put(self, image: list[int], values: Sequence[float]) -> None:
+        try:
+            for (first, start, stop, packer), words in zip(self._runs, self._words, strict=True):
+                image[first : first + words.size // 2] = words.unpack(
+                    packer.pack(*values[start:stop])
+                )
+        except (struct.error, OverflowError):
+            _put_row(image, self.layout, values)
 
 
 def get(image: Sequence[int], field: Field, index: int = 0) -> float | int | str:
@@ -420,6 +743,14 @@ def get(image: Sequence[int], field: Field, index: int = 0) -> float | int | str
     if field.kind is Kind.F32:
         return words_f32(image[at], image[at + 1])
     return words_ascii(image[at : at + field.registers])
+
+
+@dataclass(frozen=True)
+class AxisIdentity:
+    """What the map shows of an axis before the first status: its configured name and node."""
+
+    name: str
+    node_id: int
 
 
 @dataclass(frozen=True)
@@ -439,14 +770,19 @@ class Identity:
     watchdog_timeout_ms: int
 
 
-def identity_image(
-    *, axis_count: int, unit_id: int, read_only: bool, watchdog_timeout_ms: int
+def static_image(
+    *,
+    axes: Sequence[AxisIdentity],
+    unit_id: int,
+    read_only: bool,
+    watchdog_timeout_ms: int,
+    staging_timeout_ms: int,
 ) -> list[int]:
-    """An input image of :data:`INPUT_SIZE` registers with the identity block filled in."""
+    """An input image of :data:`INPUT_SIZE` registers with what never changes while the server
+    runs: the identity block, the staging timeout, axis names and node ids."""
     image = [0] * INPUT_SIZE
-    flags = (AccessFlag.READ_ONLY if read_only else 0) | (
-        AccessFlag.WATCHDOG if watchdog_timeout_ms > 0 and not read_only else 0
-    )
+    watchdog_on = watchdog_timeout_ms > 0 and not read_only
+    flags = (AccessFlag.READ_ONLY if read_only else 0) | (AccessFlag.WATCHDOG if watchdog_on else 0)
     major, minor, patch = version_numbers()
     for name, value in (
         ("MAGIC", MAGIC),
@@ -456,14 +792,18 @@ def identity_image(
         ("FIRMWARE_MAJOR", major),
         ("FIRMWARE_MINOR", minor),
         ("FIRMWARE_PATCH", patch),
-        ("AXIS_COUNT", axis_count),
+        ("AXIS_COUNT", min(len(axes), MAX_AXES)),
         ("STAGING_MAX_POINTS", MAX_POINTS),
         ("STAGING_MAX_DEGREE", MAX_DEGREE),
         ("ACCESS_FLAGS", flags),
         ("UNIT_ID", unit_id),
-        ("WATCHDOG_TIMEOUT_MS", watchdog_timeout_ms),
+        ("WATCHDOG_TIMEOUT_MS", watchdog_timeout_ms if watchdog_on else 0),
+        ("STAGING_TIMEOUT_MS", staging_timeout_ms),
     ):
         put(image, FIELD[name], value)
+    for i, axis in enumerate(axes[:MAX_AXES]):
+        put(image, FIELD["AXIS_NAME"], axis.name, i)
+        put(image, FIELD["AXIS_NODE_ID"], axis.node_id, i)
     return image
 
 
@@ -489,78 +829,303 @@ def decode_identity(image: Sequence[int]) -> Identity:
 
 
 @dataclass(frozen=True)
-class ServerStatus:
-    """What the server itself reports beside the machine's snapshot."""
+class HmiRequest:
+    """One COMMAND_SEQ change as this server judged it."""
 
-    request_seq: int = 0
-    request_result: CommandResult = CommandResult.NONE
-    upload_seq: int = 0
-    upload_result: CommandResult = CommandResult.NONE
-    watchdog: WatchdogState = WatchdogState.OFF
+    ticket: int
+    """The runtime's ticket of the posted command; 0 when the server refused it itself."""
+    seq: int
+    code: CommandCode | int
+    result: CommandResult | int
+
+
+@dataclass(frozen=True)
+class StagingView:
+    """Who holds the staging area."""
+
+    state: StagingState = StagingState.FREE
+    owner_ip: int = 0
+    owner_port: int = 0
+    hold_left_ms: int = 0
+
+
+@dataclass(frozen=True)
+class LibraryEntry:
+    """A library program as the library registers show it."""
+
+    number: int = 0
+    state: LibraryState | int = LibraryState.NONE
+    result: CommandResult | int = CommandResult.NONE
+    name: str = ""
+    points: int = 0
+    length_mm: float = 0.0
+    crc32: int = 0
+
+
+@dataclass(frozen=True)
+class ServerView:
+    """What the server itself shows beside the machine's snapshot."""
+
+    requests: tuple[HmiRequest, ...] = ()
+    """Newest first, at most :data:`HISTORY`."""
+    upload: HmiRequest | None = None
+    staging: StagingView = StagingView()
+    library_count: int = 0
+    library: LibraryEntry = LibraryEntry()
+    request_message: str = ""
 
 
 @dataclass(frozen=True)
 class HmiStatus:
-    """A decoded status image: the machine's snapshot (to float32 and µs resolution) and the
-    server's own status."""
+    """A decoded status image."""
 
-    snapshot: StatusSnapshot
-    server: ServerStatus
+    snapshot: StatusSnapshot | None
+    """The machine's snapshot (to float32 and µs resolution; later faults only counted); None
+    while the runtime starts."""
+    status_word: int
+    later_fault_count: int
+    server: ServerView
+
+
+def status_word(snapshot: StatusSnapshot, staging: StagingState) -> int:
+    """The STATUS_WORD bits of ``snapshot``."""
+    state, phase = snapshot.state, snapshot.phase
+    bits = StatusBit.STATUS_VALID
+    for condition, bit in (
+        (state in _ENABLED_STATES, StatusBit.ENABLED),
+        (state is MachineState.MOVING, StatusBit.MOVING),
+        (state is MachineState.HOLDING, StatusBit.HOLDING),
+        (state is MachineState.STOPPING, StatusBit.STOPPING),
+        (state is MachineState.ERROR_STOP, StatusBit.FAULT),
+        (snapshot.in_position, StatusBit.IN_POSITION),
+        (snapshot.program is not None, StatusBit.PROGRAM_LOADED),
+        (snapshot.next_program is not None, StatusBit.NEXT_PROGRAM),
+        (phase is MotionPhase.APPROACH, StatusBit.APPROACH),
+        (phase is MotionPhase.BRAKING, StatusBit.BRAKING),
+        (snapshot.watchdog is WatchdogState.TRIPPED, StatusBit.WATCHDOG_TRIPPED),
+        (staging is StagingState.HELD, StatusBit.STAGING_HELD),
+    ):
+        if condition:
+            bits |= bit
+    return bits
+
+
+_ENABLED_STATES = frozenset(
+    {MachineState.STANDBY, MachineState.MOVING, MachineState.HOLDING, MachineState.STOPPING}
+)
+
+
+def _put_history(image: list[int], names: Sequence[str], rows: Sequence[Sequence[int]]) -> None:
+    for i, row in enumerate(rows[:HISTORY]):
+        for name, value in zip(names, row, strict=True):
+            put(image, FIELD[name], value, i)
+
+
+_COMMAND_COLUMNS = (
+    "COMMAND_TICKET",
+    "COMMAND_SEQ_ACK",
+    "COMMAND_CODE_ACK",
+    "COMMAND_ORIGIN",
+    "COMMAND_RESULT",
+)
+_REQUEST_COLUMNS = ("REQUEST_TICKET", "REQUEST_SEQ", "REQUEST_CODE", "REQUEST_RESULT")
+_PROGRAM_COLUMNS = ("PROGRAM_ID", "PROGRAM_CRC32", "PROGRAM_LENGTH", "PROGRAM_NAME")
+
+
+def _put_server(image: list[int], server: ServerView) -> None:
+    staging, library, upload = server.staging, server.library, server.upload
+    for name, value in (
+        ("UPLOAD_SEQ", upload.seq if upload else 0),
+        ("UPLOAD_RESULT", upload.result if upload else CommandResult.NONE),
+        ("STAGING_STATE", staging.state),
+        ("STAGING_OWNER_IP", staging.owner_ip),
+        ("STAGING_OWNER_PORT", staging.owner_port),
+        ("STAGING_HOLD_LEFT_MS", staging.hold_left_ms),
+        ("LIBRARY_COUNT", server.library_count),
+        ("LIBRARY_NUMBER", library.number),
+        ("LIBRARY_STATE", library.state),
+        ("LIBRARY_RESULT", library.result),
+        ("LIBRARY_POINTS", library.points),
+        ("LIBRARY_LENGTH", library.length_mm),
+        ("LIBRARY_CRC32", library.crc32),
+        ("LIBRARY_NAME", library.name),
+        ("REQUEST_MESSAGE", server.request_message),
+    ):
+        put(image, FIELD[name], value)
+    _put_history(
+        image, _REQUEST_COLUMNS, [(r.ticket, r.seq, r.code, r.result) for r in server.requests]
+    )
 
 
 def encode_status(
-    identity: Sequence[int],
-    snapshot: StatusSnapshot,
-    server: ServerStatus,
-    axis_names: Sequence[str],
+    static: Sequence[int], snapshot: StatusSnapshot | None, server: ServerView
 ) -> list[int]:
-    """The whole input image: ``identity`` (from :func:`identity_image`) with the status filled
-    in from ``snapshot`` and ``server``."""
-    image = list(identity)
+    """The whole input image: ``static`` (from :func:`static_image`) with the status of
+    ``snapshot`` (None: the runtime is starting) and ``server`` filled in."""
+    return StatusEncoder(static).encode(snapshot, server)
+
+
+_UNSET = object()
+_COMMANDS = (FIELD["COMMAND_TICKET"].address, FIELD["COMMAND_RESULT"].end)
+_REQUESTS = (FIELD["REQUEST_TICKET"].address, FIELD["REQUEST_RESULT"].end)
+_PROGRAMS = (FIELD["PROGRAM_ID"].address, FIELD["PROGRAM_NAME"].end)
+
+
+class StatusEncoder:
+    """Encodes input images one after another, rewriting the parts that change rarely (the
+    server's view, the command history, the programs, the message) only when they differ from
+    the previous call's. Not thread-safe: one encoder per thread."""
+
+    def __init__(self, static: Sequence[int]) -> None:
+        self._static = list(static)
+        self._image = list(static)
+        self._keys: dict[str, object] = {}
+
+    def encode(self, snapshot: StatusSnapshot | None, server: ServerView) -> list[int]:
+        """The input image of ``snapshot`` (None: the runtime is starting) and ``server``."""
+        if snapshot is None:
+            image = self._image = list(self._static)
+            self._keys.clear()
+            _put_server(image, server)
+            put(image, FIELD["MACHINE_STATE"], STATE_STARTING)
+            staging_held = server.staging.state is StagingState.HELD
+            put(image, FIELD["STATUS_WORD"], StatusBit.STAGING_HELD * staging_held)
+            put(image, FIELD["MESSAGE"], "runtime starting: no machine status yet")
+            for i in range(int(get(image, FIELD["AXIS_COUNT"]))):
+                for name in ("AXIS_COMMANDED", "AXIS_ACTUAL", "AXIS_FOLLOWING_ERROR"):
+                    put(image, FIELD[name], math.nan, i)
+            return list(image)
+        image = self._image
+        self._part("server", server, _REQUESTS, lambda: _put_server(image, server))
+        records = snapshot.recent_commands or (
+            (snapshot.last_command,) if snapshot.last_command is not None else ()
+        )
+        self._part("commands", records, _COMMANDS, lambda: _put_commands(image, records))
+        programs = (snapshot.program, snapshot.next_program)
+        self._part("programs", programs, _PROGRAMS, lambda: _put_programs(image, programs))
+        message = snapshot.message
+        self._part("message", message, None, lambda: put(image, FIELD["MESSAGE"], message))
+        names = tuple(a.name for a in snapshot.axes)
+        self._part("axes", names, None, lambda: _put_axis_names(image, names))
+        _put_machine(image, snapshot, server.staging.state)
+        return list(image)
+
+    def _part(
+        self, name: str, key: object, clear: tuple[int, int] | None, write: Callable[[], None]
+    ) -> None:
+        if self._keys.get(name, _UNSET) == key:
+            return
+        if clear is not None:
+            first, end = clear
+            self._image[first:end] = [0] * (end - first)
+        write()
+        self._keys[name] = key
+
+
+def _put_commands(image: list[int], records: Sequence[CommandRecord]) -> None:
+    _put_history(
+        image,
+        _COMMAND_COLUMNS,
+        [(r.ticket, r.seq, r.code, r.origin, r.result) for r in reversed(records)],
+    )
+
+
+def _put_programs(
+    image: list[int], programs: tuple[ProgramStatus | None, ProgramStatus | None]
+) -> None:
+    for i, program in enumerate(programs):
+        if program is not None:
+            row = (program.program_id, program.crc32, program.length_mm, program.name)
+            for name, value in zip(_PROGRAM_COLUMNS, row, strict=True):
+                put(image, FIELD[name], value, i)
+
+
+_MACHINE = (
+    "HEARTBEAT",
+    "MACHINE_STATE",
+    "STATUS_WORD",
+    "MOTION_PHASE",
+    "FAULT_KIND",
+    "FAULT_EMCY_CODE",
+    "FAULT_AXIS",
+    "LATER_FAULTS",
+    "PATH_FEED",
+    "PATH_POSITION",
+    "PATH_LENGTH",
+    "PATH_PROGRESS",
+    "OVERRIDE",
+    "WATCHDOG_STATE",
+    "CYCLE_COUNT",
+    "LATENESS_LAST_US",
+    "LATENESS_P50_US",
+    "LATENESS_P99_US",
+    "LATENESS_MAX_US",
+    "EXECUTION_LAST_US",
+    "EXECUTION_MAX_US",
+    "MISSED_PERIODS",
+)
+_MACHINE_ROW = _Row(_MACHINE)
+_AXIS = (
+    "AXIS_COMMANDED",
+    "AXIS_ACTUAL",
+    "AXIS_FOLLOWING_ERROR",
+    "AXIS_DRIVE_STATE",
+    "AXIS_STATUSWORD",
+    "AXIS_NODE_ID",
+)
+_AXIS_ROWS = tuple(_Row(_AXIS, i) for i in range(MAX_AXES))
+
+
+def _put_machine(image: list[int], snapshot: StatusSnapshot, staging: StagingState) -> None:
     fault = snapshot.fault
     fault_axis = 0
-    if fault is not None and fault.axis in axis_names:
-        fault_axis = axis_names.index(fault.axis) + 1
+    names = [a.name for a in snapshot.axes]
+    if fault is not None and fault.axis in names:
+        fault_axis = names.index(fault.axis) + 1
     stats = snapshot.stats
-    for name, value in (
-        ("HEARTBEAT", snapshot.heartbeat & 0xFFFF),
-        ("MACHINE_STATE", snapshot.state),
-        ("FAULT_KIND", fault.kind if fault else FaultKind.NONE),
-        ("FAULT_EMCY_CODE", fault.emcy_code if fault else 0),
-        ("FAULT_AXIS", fault_axis),
-        ("OVERRIDE", round(snapshot.override_percent * OVERRIDE_SCALE)),
-        ("PATH_FEED", snapshot.feed_mm_s),
-        ("PATH_POSITION", snapshot.path_s_mm),
-        ("PATH_LENGTH", snapshot.path_length_mm),
-        ("PATH_PROGRESS", snapshot.progress_permille),
-        ("WATCHDOG_STATE", server.watchdog),
-        ("COMMAND_SEQ_ACK", snapshot.last_command_seq & 0xFFFF),
-        ("COMMAND_RESULT", snapshot.last_command_result),
-        ("REQUEST_SEQ", server.request_seq),
-        ("REQUEST_RESULT", server.request_result),
-        ("UPLOAD_SEQ", server.upload_seq),
-        ("UPLOAD_RESULT", server.upload_result),
-        ("LOADED_CURVE_ID", snapshot.curve_id),
-        ("LOADED_CURVE_CRC32", snapshot.curve_crc),
-        ("CYCLE_COUNT", stats.cycles),
-        ("LATENESS_LAST_US", round(stats.lateness_last_us)),
-        ("LATENESS_P50_US", round(stats.lateness_p50_us)),
-        ("LATENESS_P99_US", round(stats.lateness_p99_us)),
-        ("LATENESS_MAX_US", round(stats.lateness_max_us)),
-        ("EXECUTION_LAST_US", round(stats.execution_last_us)),
-        ("EXECUTION_MAX_US", round(stats.execution_max_us)),
-        ("MISSED_PERIODS", stats.missed_periods),
-        ("MESSAGE", snapshot.message),
-    ):
-        put(image, FIELD[name], value)
-    for i, axis in enumerate(snapshot.axes[:MAX_AXES]):
-        put(image, FIELD["AXIS_COMMANDED"], axis.commanded_mm, i)
-        put(image, FIELD["AXIS_ACTUAL"], axis.actual_mm, i)
-        put(image, FIELD["AXIS_FOLLOWING_ERROR"], axis.following_error_mm, i)
-        put(image, FIELD["AXIS_DRIVE_STATE"], axis.drive_state, i)
-        put(image, FIELD["AXIS_NODE_ID"], axis.node_id, i)
-        put(image, FIELD["AXIS_NAME"], axis.name, i)
-    return image
+    row = (
+        snapshot.heartbeat & 0xFFFF,
+        snapshot.state,
+        status_word(snapshot, staging),
+        snapshot.phase,
+        fault.kind if fault else FaultKind.NONE,
+        fault.emcy_code if fault else 0,
+        fault_axis,
+        len(snapshot.later_faults),
+        snapshot.feed_mm_s,
+        snapshot.path_s_mm,
+        snapshot.path_length_mm,
+        snapshot.progress_permille,
+        round(snapshot.override_percent * OVERRIDE_SCALE),
+        snapshot.watchdog,
+        stats.cycles & 0xFFFF_FFFF,
+        round(stats.lateness_last_us),
+        round(stats.lateness_p50_us),
+        round(stats.lateness_p99_us),
+        round(stats.lateness_max_us),
+        round(stats.execution_last_us),
+        round(stats.execution_max_us),
+        stats.missed_periods,
+    )
+    _MACHINE_ROW.put(image, row)
+    for axis, axis_row in zip(snapshot.axes, _AXIS_ROWS, strict=False):
+        drive_state = axis.drive_state if axis.drive_state >= 0 else DRIVE_STATE_UNKNOWN
+        axis_row.put(
+            image,
+            (
+                axis.commanded_mm,
+                axis.actual_mm,
+                axis.following_error_mm,
+                drive_state,
+                axis.statusword,
+                axis.node_id,
+            ),
+        )
+
+
+def _put_axis_names(image: list[int], names: Sequence[str]) -> None:
+    for i, name in enumerate(names[:MAX_AXES]):
+        put(image, FIELD["AXIS_NAME"], name, i)
 
 
 def as_enum(enum: type[IntEnum], value: int) -> IntEnum | int:
@@ -571,6 +1136,49 @@ def as_enum(enum: type[IntEnum], value: int) -> IntEnum | int:
         return value
 
 
+def _history_rows(image: Sequence[int], names: Sequence[str]) -> list[list[int]]:
+    rows = [[int(get(image, FIELD[name], i)) for name in names] for i in range(HISTORY)]
+    return [row for row in rows if row[0] or row[1]]
+
+
+def decode_server(image: Sequence[int]) -> ServerView:
+    """The server's own part of an input image read from address 0."""
+
+    def g(name: str) -> int:
+        return int(get(image, FIELD[name]))
+
+    requests = tuple(
+        HmiRequest(ticket, seq, as_enum(CommandCode, code), as_enum(CommandResult, result))
+        for ticket, seq, code, result in _history_rows(image, _REQUEST_COLUMNS)
+    )
+    upload_seq = g("UPLOAD_SEQ")
+    upload_result = as_enum(CommandResult, g("UPLOAD_RESULT"))
+    upload = None
+    if upload_seq or upload_result != CommandResult.NONE:
+        upload = HmiRequest(0, upload_seq, CommandCode.LOAD_CURVE, upload_result)
+    return ServerView(
+        requests=requests,
+        upload=upload,
+        staging=StagingView(
+            state=as_enum(StagingState, g("STAGING_STATE")),  # type: ignore[arg-type]
+            owner_ip=g("STAGING_OWNER_IP"),
+            owner_port=g("STAGING_OWNER_PORT"),
+            hold_left_ms=g("STAGING_HOLD_LEFT_MS"),
+        ),
+        library_count=g("LIBRARY_COUNT"),
+        library=LibraryEntry(
+            number=g("LIBRARY_NUMBER"),
+            state=as_enum(LibraryState, g("LIBRARY_STATE")),
+            result=as_enum(CommandResult, g("LIBRARY_RESULT")),
+            name=str(get(image, FIELD["LIBRARY_NAME"])),
+            points=g("LIBRARY_POINTS"),
+            length_mm=float(get(image, FIELD["LIBRARY_LENGTH"])),
+            crc32=g("LIBRARY_CRC32"),
+        ),
+        request_message=str(get(image, FIELD["REQUEST_MESSAGE"])),
+    )
+
+
 def decode_status(image: Sequence[int]) -> HmiStatus:
     """An input image read from address 0 (:data:`INPUT_SIZE` registers) as an
     :class:`HmiStatus`. Unknown enum values stay plain integers."""
@@ -578,17 +1186,21 @@ def decode_status(image: Sequence[int]) -> HmiStatus:
     def g(name: str, index: int = 0) -> float | int | str:
         return get(image, FIELD[name], index)
 
-    axis_count = min(int(g("AXIS_COUNT")), MAX_AXES)
+    server = decode_server(image)
+    state = int(g("MACHINE_STATE"))
+    if state == STATE_STARTING:
+        return HmiStatus(None, int(g("STATUS_WORD")), 0, server)
     axes = tuple(
         AxisStatus(
             name=str(g("AXIS_NAME", i)),
             node_id=int(g("AXIS_NODE_ID", i)),
             commanded_mm=float(g("AXIS_COMMANDED", i)),
             actual_mm=float(g("AXIS_ACTUAL", i)),
-            drive_state=int(g("AXIS_DRIVE_STATE", i)),
+            drive_state=_drive_state(int(g("AXIS_DRIVE_STATE", i))),
             following_error_mm=float(g("AXIS_FOLLOWING_ERROR", i)),
+            statusword=int(g("AXIS_STATUSWORD", i)),
         )
-        for i in range(axis_count)
+        for i in range(min(int(g("AXIS_COUNT")), MAX_AXES))
     )
     kind = as_enum(FaultKind, int(g("FAULT_KIND")))
     fault = None
@@ -600,13 +1212,39 @@ def decode_status(image: Sequence[int]) -> HmiStatus:
             axis=axes[axis_index].name if 0 <= axis_index < len(axes) else None,
             emcy_code=int(g("FAULT_EMCY_CODE")),
         )
+    commands = tuple(
+        CommandRecord(
+            ticket=ticket,
+            origin=as_enum(CommandOrigin, origin),  # type: ignore[arg-type]
+            seq=seq,
+            code=as_enum(CommandCode, code),  # type: ignore[arg-type]
+            result=as_enum(CommandResult, result),  # type: ignore[arg-type]
+        )
+        for ticket, seq, code, origin, result in reversed(_history_rows(image, _COMMAND_COLUMNS))
+    )
+    programs = [
+        ProgramStatus(
+            program_id=int(g("PROGRAM_ID", i)),
+            name=str(g("PROGRAM_NAME", i)),
+            crc32=int(g("PROGRAM_CRC32", i)),
+            length_mm=float(g("PROGRAM_LENGTH", i)),
+        )
+        if g("PROGRAM_ID", i)
+        else None
+        for i in range(2)
+    ]
+    word = int(g("STATUS_WORD"))
     snapshot = StatusSnapshot(
-        state=as_enum(MachineState, int(g("MACHINE_STATE"))),  # type: ignore[arg-type]
+        state=as_enum(MachineState, state),  # type: ignore[arg-type]
         fault=fault,
         axes=axes,
+        phase=as_enum(MotionPhase, int(g("MOTION_PHASE"))),  # type: ignore[arg-type]
         feed_mm_s=float(g("PATH_FEED")),
         path_s_mm=float(g("PATH_POSITION")),
         path_length_mm=float(g("PATH_LENGTH")),
+        in_position=bool(word & StatusBit.IN_POSITION),
+        program=programs[0],
+        next_program=programs[1],
         override_percent=int(g("OVERRIDE")) / OVERRIDE_SCALE,
         stats=CycleStatistics(
             cycles=int(g("CYCLE_COUNT")),
@@ -618,18 +1256,14 @@ def decode_status(image: Sequence[int]) -> HmiStatus:
             execution_max_us=float(g("EXECUTION_MAX_US")),
             missed_periods=int(g("MISSED_PERIODS")),
         ),
-        last_command_seq=int(g("COMMAND_SEQ_ACK")),
-        last_command_result=int(g("COMMAND_RESULT")),
-        curve_id=int(g("LOADED_CURVE_ID")),
-        curve_crc=int(g("LOADED_CURVE_CRC32")),
+        last_command=commands[-1] if commands else None,
+        recent_commands=commands,
+        watchdog=as_enum(WatchdogState, int(g("WATCHDOG_STATE"))),  # type: ignore[arg-type]
         heartbeat=int(g("HEARTBEAT")),
         message=str(g("MESSAGE")),
     )
-    server = ServerStatus(
-        request_seq=int(g("REQUEST_SEQ")),
-        request_result=as_enum(CommandResult, int(g("REQUEST_RESULT"))),  # type: ignore[arg-type]
-        upload_seq=int(g("UPLOAD_SEQ")),
-        upload_result=as_enum(CommandResult, int(g("UPLOAD_RESULT"))),  # type: ignore[arg-type]
-        watchdog=as_enum(WatchdogState, int(g("WATCHDOG_STATE"))),  # type: ignore[arg-type]
-    )
-    return HmiStatus(snapshot=snapshot, server=server)
+    return HmiStatus(snapshot, word, int(g("LATER_FAULTS")), server)
+
+
+def _drive_state(value: int) -> int:
+    return -1 if value == DRIVE_STATE_UNKNOWN else value

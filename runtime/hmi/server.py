@@ -1,184 +1,246 @@
-"""The Modbus TCP server of the HMI: pymodbus 3.16 in its own thread and event loop.
+"""The HMI's Modbus TCP server: asyncio connections that frame the byte stream, answer every
+request in order, and serve the registers of :class:`runtime.hmi.device.HmiDevice`.
 
-The only module that imports the pymodbus server (reference/modbus-hmi.md §1-3). One
-``SimDevice`` with separate holding and input blocks laid out by :mod:`runtime.hmi.registers`;
-its action hook does all the work, on the server's loop thread:
+Why not pymodbus's server (3.16.1, pinned; the client side still uses pymodbus): its request
+handler keeps one request per connection, so pipelined requests (several in one TCP segment, or
+a frame split across segments after another) lose all but one; its framer waits forever after a
+bad MBAP header, so the connection is wedged; requests it cannot decode answer function code 0
+with exception 1. This module replaces its framer and request handler (:mod:`.protocol`).
 
-- FC4 reads ("pull on read"): the latest :meth:`MachineLink.snapshot` is encoded once into the
-  input image (cached per snapshot object, so many clients cost one encoding per cycle at most)
-  and the requested registers are copied from that image: a read never mixes two snapshots.
-- Holding writes are validated before pymodbus applies them: a write that starts or ends inside
-  a 32-bit value, or carries a value above a field's maximum (override > 150.0 %, unknown
-  command code), answers exception 3; addresses outside the map answer exception 2 (pymodbus
-  checks that before the action). A write that changes ``COMMAND_SEQ`` runs ``COMMAND_CODE``
-  once through :meth:`MachineLink.submit`, which queues it for the start of the next cycle; a
-  refusal answers exception 6 (state, no curve, drives not ready) or 3 (invalid parameter) and
-  the write is not applied. ``LOAD_CURVE`` is the curve commit: the staged curve is decoded,
-  validated and prepared in a worker thread (not on the cycle), then submitted; a bad curve
-  answers exception 3 with its code in ``UPLOAD_RESULT``. The server's own judgement of the last
-  command and commit is published in ``REQUEST_*`` and ``UPLOAD_*``.
-- Coils and discrete inputs do not exist: exception 2.
+Per connection:
 
-Access: binds to ``config.bind``; connections from peers outside ``config.allowed_networks`` are
-closed as soon as they are accepted; requests to unit ids other than ``config.unit_id``, 0 and
-255 answer exception 0x0B (gateway target failed to respond); ``read_only`` marks every holding
-register read-only, so every write answers exception 2.
+- bytes are appended to a buffer; every complete frame is answered, in order, however the
+  frames were cut into segments; responses produced together are written together;
+- a malformed MBAP header (protocol id other than 0, length 0, 1 or above 254) or a frame left
+  incomplete for :attr:`HmiServer.frame_timeout_s` closes the connection, after the frames
+  before it are answered, with a warning naming the peer;
+- a request whose answer must wait (a curve commit) holds back the ones after it on that
+  connection, so answers stay in order; other connections go on meanwhile;
+- reading pauses while the peer does not read its answers (transport flow control) or while
+  :data:`MAX_QUEUED_FRAMES` requests wait.
 
-HMI link watchdog (``config.watchdog.timeout_ms`` > 0, not read-only): a change of
-``HMI_HEARTBEAT`` or an accepted command restarts the timer; when it runs out while the machine
-is MOVING, ``HOLD`` (or ``STOP``) is submitted once with origin ``"hmi watchdog"``.
+Access: binds to ``config.bind``; a connection from outside ``config.allowed_networks`` is
+closed as soon as it is accepted; unit ids other than ``config.unit_id``, 0 and 255 answer
+exception 11.
 
-Threading: :meth:`HmiServer.start` returns once the server listens; every callback runs on the
-server thread; the link must tolerate ``snapshot``/``submit`` from that thread and
-``prepare_curve`` from a worker thread.
+Threading: :class:`HmiServer` runs its event loop in a thread of its own (:meth:`HmiServer.start`
+returns once it listens) or, through :func:`serve_hmi`, in the calling thread (the HMI
+process's main thread). The link's methods are called from the loop thread only.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ipaddress
 import logging
+import signal
 import threading
-import time
-from collections.abc import Sequence
-from dataclasses import replace
-from typing import Protocol
+from collections import deque
+from collections.abc import Awaitable
 
-from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
-from pymodbus.server import ModbusTcpServer
-from pymodbus.server.requesthandler import ServerRequestHandler
-from pymodbus.simulator import DataType, SimData, SimDevice
-
-from planner.errors import CurveError
-from planner.nurbs import NurbsCurve
-from runtime.commands import Command, CommandCode, CommandResult, check_allowed
 from runtime.config import ModbusConfig
 from runtime.hmi import HmiError
-from runtime.hmi.registers import (
-    BLOCKS,
-    FIELD,
-    FIELDS,
-    INPUT_SIZE,
-    OVERRIDE_SCALE,
-    Kind,
-    ServerStatus,
-    Table,
-    WatchdogState,
-    encode_status,
-    identity_image,
+from runtime.hmi.device import HmiDevice
+from runtime.hmi.link import MachineLink
+from runtime.hmi.protocol import (
+    DeviceIdentity,
+    ExceptionCode,
+    Frame,
+    answer,
+    exception_pdu,
+    frame_bytes,
+    read_frames,
 )
-from runtime.hmi.upload import UploadRejected, decode_staging, result_for
-from runtime.status import MachineState, StatusSnapshot
+from runtime.version import VERSION
+from runtime.hmi.staging import Peer
 
 log = logging.getLogger(__name__)
 
-
-class MachineLink(Protocol):
-    """What the HMI server needs from the machine."""
-
-    axis_names: tuple[str, ...]
-
-    def snapshot(self) -> StatusSnapshot:
-        """The last complete status (never half-updated)."""
-        ...
-
-    def submit(self, command: Command) -> CommandResult:
-        """Check ``command`` against the current state and queue it for the next cycle
-        (PENDING), or refuse it (nothing queued or changed)."""
-        ...
-
-    def prepare_curve(self, curve: NurbsCurve, crc32: int) -> object:
-        """Check travel and prepare ``curve`` for planning; the result goes into a LOAD_CURVE
-        command. Raises :class:`planner.errors.CurveError`."""
-        ...
-
-
-#: Refusals that mean "well formed, but not now": Modbus exception 6 (device busy).
-BUSY_RESULTS = frozenset(
-    {CommandResult.REJECTED_STATE, CommandResult.NO_CURVE, CommandResult.DRIVES_NOT_READY}
-)
-#: Results of an accepted command.
-ACCEPTED_RESULTS = frozenset({CommandResult.PENDING, CommandResult.DONE})
 #: Unit ids answered besides the configured one (libmodbus and many HMIs send 255 over TCP).
 EXTRA_UNIT_IDS = (0, 255)
-
-_SINGLE, _HIGH, _LOW = 1, 2, 3
-_BIT_FUNCTIONS = frozenset({1, 2, 5, 15})
-_READ_INPUT = 4
-_CODE = FIELD["COMMAND_CODE"].address
-_SEQ = FIELD["COMMAND_SEQ"].address
-_OVERRIDE = FIELD["OVERRIDE_SETPOINT"].address
-_HEARTBEAT = FIELD["HMI_HEARTBEAT"].address
+#: Requests read ahead of their answers on one connection before reading pauses.
+MAX_QUEUED_FRAMES = 64
+#: What FC17 and FC43/14 report.
+IDENTITY = DeviceIdentity(
+    vendor_name="softmotion", product_code="softmotion", revision=VERSION
+)
 
 
-def _holding_layout() -> tuple[list[int], dict[int, int]]:
-    """Per holding address: its role in a value (single, high or low word), and maxima."""
-    end = max(f.end for f in FIELDS if f.table is Table.HOLDING)
-    roles = [0] * end
-    maxima: dict[int, int] = {}
-    for field in FIELDS:
-        if field.table is not Table.HOLDING:
-            continue
-        for i in range(field.repeat):
-            at = field.address_of(i)
-            if field.kind is Kind.U16:
-                roles[at] = _SINGLE
-            else:
-                roles[at], roles[at + 1] = _HIGH, _LOW
-            if field.maximum is not None:
-                maxima[at] = field.maximum
-    return roles, maxima
+class _Connection(asyncio.Protocol):
+    """One client connection."""
 
+    def __init__(self, server: HmiServer) -> None:
+        self._server = server
+        self._transport: asyncio.Transport | None = None
+        self.peer = Peer("", 0)
+        self._buffer = bytearray()
+        self._queue: deque[Frame] = deque()
+        self._busy = False
+        """An answer is being awaited (a commit); later frames wait for it."""
+        self._write_paused = False
+        self._read_paused = False
+        self._close_reason: str | None = None
+        self._incomplete: asyncio.TimerHandle | None = None
 
-def _exception_for(result: CommandResult) -> ExcCodes | None:
-    if result in ACCEPTED_RESULTS:
-        return None
-    if result in BUSY_RESULTS:
-        return ExcCodes.DEVICE_BUSY
-    return ExcCodes.ILLEGAL_VALUE
+    # -- asyncio callbacks --------------------------------------------------------------------
 
-
-class _UnitFilter:
-    """The server context, answering only the configured unit id and 0 and 255."""
-
-    def __init__(self, context: object, unit_ids: frozenset[int]) -> None:
-        self._context = context
-        self._unit_ids = unit_ids
-
-    def _check(self, device_id: int) -> None:
-        if device_id not in self._unit_ids:
-            raise NoSuchIdException(f"unit id {device_id} (answered: {sorted(self._unit_ids)})")
-
-    def device_ids(self) -> list[int]:
-        return sorted(self._unit_ids)
-
-    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
-        self._check(device_id)
-        return await self._context.async_getValues(device_id, func_code, address, count)
-
-    async def async_setValues(self, device_id: int, func_code: int, address: int, values):
-        self._check(device_id)
-        return await self._context.async_setValues(device_id, func_code, address, values)
-
-
-class _GuardedHandler(ServerRequestHandler):
-    """A client connection that is closed at once when its peer is not allowed."""
-
-    def callback_connected(self) -> None:
-        peer = self.transport.get_extra_info("peername")
-        if not self.server.allows(peer[0] if peer else ""):
-            log.warning("modbus: refused connection from %s (not in allowed_networks)", peer)
-            self.close()
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self._transport = transport
+        peer = transport.get_extra_info("peername") or ("", 0)
+        self.peer = Peer(str(peer[0]), int(peer[1]))
+        if not self._server.allows(self.peer.host):
+            log.warning("modbus: refused connection from %s (not in allowed_networks)", self.peer)
+            transport.close()
             return
-        super().callback_connected()
+        self._server.connections.add(self)
+        log.debug("modbus: %s connected", self.peer)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._incomplete is not None:
+            self._incomplete.cancel()
+        if self in self._server.connections:
+            self._server.connections.discard(self)
+            self._server.device.disconnected(self.peer)
+            log.debug("modbus: %s disconnected (%s)", self.peer, exc or "closed")
+
+    def data_received(self, data: bytes) -> None:
+        if self._close_reason is not None:
+            return
+        self._buffer += data
+        frames, used, error = read_frames(self._buffer)
+        del self._buffer[:used]
+        self._queue.extend(frames)
+        if error is not None:
+            self._close_after_answers(f"{error}")
+        else:
+            self._watch_incomplete(progress=used > 0)
+        self._process()
+
+    def pause_writing(self) -> None:
+        self._write_paused = True
+
+    def resume_writing(self) -> None:
+        self._write_paused = False
+        self._process()
+
+    # -- frames -------------------------------------------------------------------------------
+
+    def _watch_incomplete(self, *, progress: bool) -> None:
+        """Time an incomplete frame from when the last complete one ended."""
+        if self._incomplete is not None and (progress or not self._buffer):
+            self._incomplete.cancel()
+            self._incomplete = None
+        if self._buffer and self._incomplete is None:
+            self._incomplete = asyncio.get_running_loop().call_later(
+                self._server.frame_timeout_s, self._incomplete_timed_out
+            )
+
+    def _incomplete_timed_out(self) -> None:
+        self._incomplete = None
+        self._close_after_answers(
+            f"incomplete frame ({len(self._buffer)} bytes) for {self._server.frame_timeout_s:g} s"
+        )
+        self._process()
+
+    def _close_after_answers(self, reason: str) -> None:
+        self._close_reason = reason
+        self._buffer.clear()
+        log.warning("modbus: %s: %s; closing the connection", self.peer, reason)
+
+    def _process(self) -> None:
+        """Answer queued frames in order until one must wait, then write the answers at once."""
+        transport = self._transport
+        if transport is None or transport.is_closing():
+            return
+        replies: list[bytes] = []
+        while self._queue and not self._busy and not self._write_paused:
+            frame = self._queue.popleft()
+            pdu = self._answer(frame)
+            if isinstance(pdu, bytes):
+                replies.append(frame_bytes(frame.transaction_id, frame.unit_id, pdu))
+            else:
+                self._busy = True
+                asyncio.get_running_loop().create_task(self._answer_later(frame, pdu))
+        if replies:
+            transport.write(b"".join(replies))
+        idle = not self._queue and not self._busy
+        if self._close_reason is not None and idle:
+            transport.close()
+            return
+        self._flow(len(self._queue) >= MAX_QUEUED_FRAMES or self._write_paused)
+
+    def _flow(self, pause: bool) -> None:
+        assert self._transport is not None
+        if pause and not self._read_paused:
+            self._transport.pause_reading()
+        elif not pause and self._read_paused:
+            self._transport.resume_reading()
+        self._read_paused = pause
+
+    def _answer(self, frame: Frame) -> bytes | Awaitable[bytes]:
+        function_code = frame.pdu[0]
+        if frame.unit_id not in self._server.unit_ids:
+            return exception_pdu(function_code, ExceptionCode.GATEWAY_TARGET_FAILED)
+        try:
+            return answer(frame.pdu, self._server.device, IDENTITY, self.peer)
+        except Exception:  # a bug: answer 4 rather than lose the connection's order
+            log.exception("modbus: %s: request %s failed", self.peer, frame.pdu.hex(" "))
+            return exception_pdu(function_code, ExceptionCode.SERVER_DEVICE_FAILURE)
+
+    async def _answer_later(self, frame: Frame, pending: Awaitable[bytes]) -> None:
+        try:
+            pdu = await pending
+        except Exception:  # a bug: answer 4 rather than lose the connection's order
+            log.exception("modbus: %s: request %s failed", self.peer, frame.pdu.hex(" "))
+            pdu = exception_pdu(frame.pdu[0], ExceptionCode.SERVER_DEVICE_FAILURE)
+        self._busy = False
+        transport = self._transport
+        if transport is not None and not transport.is_closing():
+            transport.write(frame_bytes(frame.transaction_id, frame.unit_id, pdu))
+        self._process()
+
+    def close(self) -> None:
+        """Close the connection (server shutdown)."""
+        if self._transport is not None:
+            self._transport.close()
 
 
-class _TcpServer(ModbusTcpServer):
-    def __init__(self, device: SimDevice, config: ModbusConfig) -> None:
-        super().__init__(device, address=(config.bind, config.port))
-        self.context = _UnitFilter(self.context, frozenset({config.unit_id, *EXTRA_UNIT_IDS}))
+class HmiServer:
+    """The HMI's Modbus TCP server for one machine.
+
+    :param link: the machine.
+    :param config: the ``modbus`` section of the machine description.
+    :param start_timeout_s: how long :meth:`start` waits for the server to listen.
+    """
+
+    #: Seconds an incomplete frame may wait for its remaining bytes before the connection is
+    #: closed (a cut header cannot be told from a slow one sooner).
+    frame_timeout_s = 1.0
+
+    def __init__(
+        self, link: MachineLink, config: ModbusConfig, *, start_timeout_s: float = 5.0
+    ) -> None:
+        self.config = config
+        self.link = link
+        self.device = HmiDevice(link, config)
+        self.unit_ids = frozenset({config.unit_id, *EXTRA_UNIT_IDS})
+        self.connections: set[_Connection] = set()
         self._networks = [ipaddress.ip_network(n, strict=False) for n in config.allowed_networks]
+        self._settle_period_s = link.config.cycle.period_s
+        self._start_timeout_s = start_timeout_s
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopping: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._port = 0
+
+    @property
+    def port(self) -> int:
+        """The TCP port the server listens on (resolves port 0 to the one chosen)."""
+        return self._port
 
     def allows(self, host: str) -> bool:
         """Whether a peer at ``host`` may connect."""
@@ -190,52 +252,7 @@ class _TcpServer(ModbusTcpServer):
             address = address.ipv4_mapped
         return any(address in network for network in self._networks)
 
-    def callback_new_connection(self) -> ServerRequestHandler:
-        return _GuardedHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
-
-
-class HmiServer:
-    """The HMI's Modbus TCP server for one machine.
-
-    :param config: the ``modbus`` section of the machine description.
-    :param link: the machine.
-    :param start_timeout_s: how long :meth:`start` waits for the server to listen.
-    """
-
-    def __init__(
-        self, config: ModbusConfig, link: MachineLink, *, start_timeout_s: float = 5.0
-    ) -> None:
-        self.config = config
-        self._link = link
-        self._start_timeout_s = start_timeout_s
-        self._roles, self._maxima = _holding_layout()
-        watchdog_on = config.watchdog.timeout_ms > 0 and not config.read_only
-        self._identity = identity_image(
-            axis_count=len(link.axis_names),
-            unit_id=config.unit_id,
-            read_only=config.read_only,
-            watchdog_timeout_ms=config.watchdog.timeout_ms if watchdog_on else 0,
-        )
-        self._status = ServerStatus(
-            watchdog=WatchdogState.WATCHING if watchdog_on else WatchdogState.OFF
-        )
-        self._watchdog_on = watchdog_on
-        self._cache: tuple[StatusSnapshot | None, ServerStatus | None, list[int]] = (None, None, [])
-        self._last_activity = time.monotonic()
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._server: _TcpServer | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._port = 0
-        self._commit_lock: asyncio.Lock | None = None
-
-    # -- life cycle (caller's thread) -------------------------------------------------------
-
-    @property
-    def port(self) -> int:
-        """The TCP port the server listens on (resolves port 0 to the one chosen)."""
-        return self._port
+    # -- in a thread of its own ---------------------------------------------------------------
 
     def start(self) -> None:
         """Start the server thread and return once it listens.
@@ -244,7 +261,7 @@ class HmiServer:
         """
         if self._thread is not None:
             raise HmiError("modbus: server already started")
-        self._thread = threading.Thread(target=self._run, name="hmi-modbus", daemon=True)
+        self._thread = threading.Thread(target=self._run_thread, name="hmi-modbus", daemon=True)
         self._thread.start()
         where = f"{self.config.bind}:{self.config.port}"
         if not self._ready.wait(self._start_timeout_s):
@@ -253,17 +270,14 @@ class HmiServer:
             self._thread.join(self._start_timeout_s)
             self._thread = None
             raise HmiError(f"modbus: cannot listen on {where}: {self._error}")
-        log.info(
-            "modbus: serving on %s:%d (unit %d)", self.config.bind, self._port, self.config.unit_id
-        )
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Close every connection, stop the server and join its thread (idempotent)."""
-        thread, loop, server = self._thread, self._loop, self._server
-        if thread is None or loop is None or server is None:
+        thread, loop, stopping = self._thread, self._loop, self._stopping
+        if thread is None or loop is None or stopping is None:
             return
         if thread.is_alive():
-            asyncio.run_coroutine_threadsafe(server.shutdown(), loop).result(timeout_s)
+            loop.call_soon_threadsafe(stopping.set)
             thread.join(timeout_s)
         self._thread = None
 
@@ -274,183 +288,56 @@ class HmiServer:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    # -- server thread ------------------------------------------------------------------------
-
-    def _run(self) -> None:
+    def _run_thread(self) -> None:
         try:
-            asyncio.run(self._main())
+            asyncio.run(self.serve())
         except BaseException as exc:  # reported to start(); the thread must not die silently
             self._error = exc
             self._ready.set()
 
-    def _device(self) -> SimDevice:
-        holding = [
-            SimData(
-                first,
-                count=end - first,
-                datatype=DataType.REGISTERS,
-                readonly=self.config.read_only,
-            )
-            for _title, table, first, end in BLOCKS
-            if table is Table.HOLDING
-        ]
-        inputs = [SimData(0, count=INPUT_SIZE, datatype=DataType.REGISTERS, readonly=True)]
-        # Coils and discrete inputs need a block to build; the action refuses them.
-        bits = [SimData(0, datatype=DataType.BITS, readonly=True)]
-        return SimDevice(0, simdata=(bits, list(bits), holding, inputs), action=self._action)
+    # -- the server ---------------------------------------------------------------------------
 
-    async def _main(self) -> None:
-        self._loop = asyncio.get_running_loop()
-        self._commit_lock = asyncio.Lock()
-        self._server = _TcpServer(self._device(), self.config)
-        await self._server.serve_forever(background=True)
-        self._port = self._server.transport.sockets[0].getsockname()[1]
-        watchdog = asyncio.create_task(self._watchdog()) if self._watchdog_on else None
+    async def serve(self, *, stop_signals: bool = False) -> None:
+        """Serve until :meth:`stop` (or, with ``stop_signals``, SIGTERM or SIGINT)."""
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._stopping = asyncio.Event()
+        if stop_signals:
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(signum, self._stopping.set)
+        server = await loop.create_server(
+            lambda: _Connection(self), host=self.config.bind, port=self.config.port
+        )
+        self._port = server.sockets[0].getsockname()[1]
+        settle = loop.create_task(self._settle())
+        await self.device.list_library()
+        log.info(
+            "modbus: serving on %s:%d (unit %d)", self.config.bind, self._port, self.config.unit_id
+        )
         self._ready.set()
         try:
-            await self._server.serving
+            await self._stopping.wait()
         finally:
-            if watchdog is not None:
-                watchdog.cancel()
+            settle.cancel()
+            server.close()
+            for connection in list(self.connections):
+                connection.close()
+            with contextlib.suppress(asyncio.CancelledError):
+                await settle
+            await server.wait_closed()
 
-    async def _action(
-        self,
-        function_code: int,
-        start_address: int,
-        address: int,
-        count: int,
-        registers: list[int],
-        values: list[int] | list[bool] | None,
-    ) -> ExcCodes | None:
-        if function_code in _BIT_FUNCTIONS:
-            return ExcCodes.ILLEGAL_ADDRESS
-        if function_code == _READ_INPUT:
-            image = self._status_image()
-            at = address - start_address
-            registers[at : at + count] = image[address : address + count]
-            return None
-        if values is None:
-            return None
-        return await self._write(address - start_address, registers, list(map(int, values)))
-
-    # -- status -------------------------------------------------------------------------------
-
-    def _status_image(self) -> list[int]:
-        snapshot = self._link.snapshot()
-        self._settle(snapshot)
-        cached_snapshot, cached_status, image = self._cache
-        if snapshot is not cached_snapshot or self._status is not cached_status:
-            image = encode_status(self._identity, snapshot, self._status, self._link.axis_names)
-            self._cache = (snapshot, self._status, image)
-        return image
-
-    def _settle(self, snapshot: StatusSnapshot) -> None:
-        """Replace PENDING by the machine's result once it has executed that command."""
-        status = self._status
-        done_seq, done_result = snapshot.last_command_seq & 0xFFFF, snapshot.last_command_result
-        if status.request_result is CommandResult.PENDING and status.request_seq == done_seq:
-            status = replace(status, request_result=CommandResult(done_result))
-        if status.upload_result is CommandResult.PENDING and status.upload_seq == done_seq:
-            status = replace(status, upload_result=CommandResult(done_result))
-        self._status = status
-
-    # -- writes -------------------------------------------------------------------------------
-
-    async def _write(self, at: int, registers: list[int], values: list[int]) -> ExcCodes | None:
-        end = at + len(values)
-        if self._roles[at] == _LOW or self._roles[end - 1] == _HIGH:
-            return ExcCodes.ILLEGAL_VALUE
-
-        def new(address: int) -> int:
-            return values[address - at] if at <= address < end else registers[address]
-
-        commits = at <= _SEQ < end and new(_SEQ) != registers[_SEQ]
-        for address, value in zip(range(at, end), values, strict=True):
-            maximum = self._maxima.get(address)
-            if maximum is not None and value > maximum:
-                if commits:
-                    self._judged(new(_SEQ), CommandResult.INVALID_PARAMETER)
-                return ExcCodes.ILLEGAL_VALUE
-        if commits:
-            refusal = await self._commit(new(_CODE), new(_SEQ), new(_OVERRIDE), registers)
-            if refusal is not None:
-                return refusal
-        if at <= _HEARTBEAT < end and new(_HEARTBEAT) != registers[_HEARTBEAT]:
-            self._activity()
-        return None
-
-    async def _commit(
-        self, code: int, seq: int, override: int, registers: list[int]
-    ) -> ExcCodes | None:
-        if code == 0:
-            self._judged(seq, CommandResult.INVALID_PARAMETER)
-            return ExcCodes.ILLEGAL_VALUE
-        assert self._commit_lock is not None
-        async with self._commit_lock:
-            command = CommandCode(code)
-            if command is CommandCode.LOAD_CURVE:
-                result = await self._load_curve(seq, registers)
-            else:
-                percent = override / OVERRIDE_SCALE if command is CommandCode.SET_OVERRIDE else None
-                result = self._link.submit(
-                    Command(command, override_percent=percent, seq=seq, origin="hmi")
-                )
-            self._judged(seq, result)
-            log.info("modbus: %s seq %d -> %s", command.name, seq, result.name)
-            if result in ACCEPTED_RESULTS:
-                self._activity()
-            return _exception_for(result)
-
-    def _judged(self, seq: int, result: CommandResult) -> None:
-        self._status = replace(self._status, request_seq=seq, request_result=result)
-
-    async def _load_curve(self, seq: int, registers: list[int]) -> CommandResult:
-        if check_allowed(self._link.snapshot().state, CommandCode.LOAD_CURVE) is not None:
-            result = CommandResult.REJECTED_STATE
-        else:
-            holding = list(registers)  # the staged data as of this commit
-            try:
-                loaded = await asyncio.to_thread(self._prepare, holding)
-            except UploadRejected as exc:
-                log.info("modbus: curve commit seq %d rejected: %s", seq, exc.reason)
-                result = exc.result
-            else:
-                result = self._link.submit(
-                    Command(CommandCode.LOAD_CURVE, curve=loaded, seq=seq, origin="hmi")
-                )
-        self._status = replace(self._status, upload_seq=seq, upload_result=result)
-        return result
-
-    def _prepare(self, holding: Sequence[int]) -> object:
-        curve, crc = decode_staging(holding)
-        try:
-            return self._link.prepare_curve(curve, crc)
-        except CurveError as exc:
-            raise UploadRejected(result_for(exc), str(exc)) from exc
-
-    # -- watchdog -----------------------------------------------------------------------------
-
-    def _activity(self) -> None:
-        self._last_activity = time.monotonic()
-        if self._status.watchdog is WatchdogState.TRIPPED:
-            self._status = replace(self._status, watchdog=WatchdogState.WATCHING)
-
-    async def _watchdog(self) -> None:
-        timeout_s = self.config.watchdog.timeout_ms / 1000.0
-        poll_s = min(max(timeout_s / 10.0, 0.005), 0.1)
-        action = CommandCode.STOP if self.config.watchdog.action == "stop" else CommandCode.HOLD
+    async def _settle(self) -> None:
+        """Collect the machine's results of posted requests even when nobody reads status."""
         while True:
-            await asyncio.sleep(poll_s)
-            if self._status.watchdog is WatchdogState.TRIPPED:
-                continue
-            silent_s = time.monotonic() - self._last_activity
-            if silent_s < timeout_s or self._link.snapshot().state is not MachineState.MOVING:
-                continue
-            result = self._link.submit(Command(action, origin="hmi watchdog"))
-            self._status = replace(self._status, watchdog=WatchdogState.TRIPPED)
-            log.warning(
-                "modbus: HMI heartbeat silent for %.0f ms while moving: %s -> %s",
-                silent_s * 1000.0,
-                action.name,
-                result.name,
-            )
+            await asyncio.sleep(self._settle_period_s)
+            if self.device.pending:
+                self.device.settle()
+
+
+def serve_hmi(link: MachineLink, config: ModbusConfig) -> None:
+    """Run the HMI server in the calling thread (the HMI process's main thread) until SIGTERM
+    or SIGINT.
+
+    :raises OSError: if it cannot listen on ``config.bind``:``config.port``.
+    """
+    asyncio.run(HmiServer(link, config).serve(stop_signals=True))

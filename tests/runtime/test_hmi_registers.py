@@ -2,37 +2,56 @@
 
 from __future__ import annotations
 
+import itertools
 import struct
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from planner.errors import CurveRule
-from runtime.commands import CommandResult
+from runtime.commands import CommandCode, CommandOrigin, CommandRecord, CommandResult
 from runtime.hmi import docgen
+from runtime.hmi.protocol import MAX_READ_REGISTERS, ExceptionCode
 from runtime.hmi.registers import (
     BLOCKS,
     FIELD,
     FIELDS,
+    HOLDING_HEAD_END,
     INPUT_SIZE,
-    MAX_READ_REGISTERS,
+    MESSAGE_CHARS,
+    AxisIdentity,
+    HmiRequest,
     Kind,
-    ServerStatus,
+    LibraryEntry,
+    LibraryState,
+    ServerView,
+    StagingState,
+    StagingView,
+    StatusBit,
     Table,
-    WatchdogState,
+    ascii_text,
     ascii_words,
     decode_identity,
     decode_status,
     encode_status,
     f32_words,
-    identity_image,
+    static_image,
     u32_words,
     words_ascii,
 )
 from runtime.hmi.upload import RULE_RESULTS, UploadRejected, decode_staging, encode_staging
-from runtime.status import AxisStatus, MachineState, StatusSnapshot
+from runtime.status import (
+    AxisStatus,
+    CycleStatistics,
+    MachineState,
+    MotionPhase,
+    ProgramStatus,
+    StatusSnapshot,
+    WatchdogState,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -62,9 +81,13 @@ def test_32_bit_values_are_even_aligned_and_names_unique() -> None:
             assert field.address % 2 == 0 and field.stride % 2 == 0, field.name
 
 
-def test_the_whole_status_fits_one_read() -> None:
-    assert INPUT_SIZE <= MAX_READ_REGISTERS
-    assert max(end for _t, table, _f, end in BLOCKS if table is Table.INPUT) == INPUT_SIZE
+def test_every_block_fits_one_read_and_the_image_is_contiguous() -> None:
+    inputs = [(first, end) for _t, table, first, end in BLOCKS if table is Table.INPUT]
+    assert inputs[0][0] == 0 and inputs[-1][1] == INPUT_SIZE
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(inputs))
+    assert all(end - first <= MAX_READ_REGISTERS for first, end in inputs)
+    holding = [(first, end) for _t, table, first, end in BLOCKS if table is Table.HOLDING]
+    assert holding[0] == (0, 16) and holding[1] == (16, HOLDING_HEAD_END)
 
 
 def test_word_encodings_are_abcd() -> None:
@@ -77,34 +100,101 @@ def test_word_encodings_are_abcd() -> None:
     assert words_ascii([0x4142, 0x2043, 0]) == "AB C"
 
 
+def test_text_is_written_in_ascii_and_long_text_ends_in_dots() -> None:
+    assert ascii_text("beyond ±1 mm at 12 µs, 3 °, café – ok ✓") == (
+        "beyond +/-1 mm at 12 us, 3  deg, cafe - ok ?"
+    )
+    words = ascii_words("x" * 300, MESSAGE_CHARS // 2)
+    assert words_ascii(words) == "x" * (MESSAGE_CHARS - 3) + "..."
+
+
+AXES = (AxisIdentity("X", 1), AxisIdentity("Y", 2))
+
+
 def test_identity_round_trip() -> None:
-    image = identity_image(axis_count=2, unit_id=7, read_only=True, watchdog_timeout_ms=70000)
+    image = static_image(
+        axes=AXES, unit_id=7, read_only=True, watchdog_timeout_ms=70000, staging_timeout_ms=5000
+    )
     assert image[2:6] == [0x47F1, 0x2000, 0x1234, 0x5678]
     identity = decode_identity(image)
     assert (identity.axis_count, identity.unit_id, identity.read_only) == (2, 7, True)
-    assert identity.watchdog_timeout_ms == 70000
+    assert identity.watchdog_timeout_ms == 0  # read-only: no watchdog
+    image = static_image(
+        axes=AXES, unit_id=7, read_only=False, watchdog_timeout_ms=70000, staging_timeout_ms=5000
+    )
+    assert decode_identity(image).watchdog_timeout_ms == 70000
 
 
 def test_status_round_trip() -> None:
+    hmi = [
+        CommandRecord(t, CommandOrigin.HMI, t + 100, CommandCode.ENABLE, CommandResult.DONE)
+        for t in range(1, 12)
+    ]
+    watchdog = CommandRecord(12, CommandOrigin.WATCHDOG, 0, CommandCode.HOLD, CommandResult.DONE)
+    records = (*hmi, watchdog)
     snapshot = StatusSnapshot(
         state=MachineState.HOLDING,
-        axes=(AxisStatus("X", 1, 1.5, 1.25, 4, 0.25), AxisStatus("Y", 2, 2.5, 2.0, 4, 0.5)),
+        axes=(
+            AxisStatus("X", 1, 1.5, 1.25, 4, -0.25, statusword=0x1237),
+            AxisStatus("Y", 2, 2.5, 2.0, -1, 0.5, statusword=0x0008),
+        ),
+        phase=MotionPhase.BRAKING,
         feed_mm_s=10.0,
         path_s_mm=50.0,
         path_length_mm=100.0,
+        in_position=True,
+        program=ProgramStatus(3, "upload CAFEF00D", 0xCAFEF00D, 173.5),
+        next_program=ProgramStatus(4, "a-paper.yaml", 0x12345678, 10.0),
         override_percent=55.5,
-        last_command_seq=9,
-        last_command_result=1,
-        curve_id=3,
-        curve_crc=0xCAFEF00D,
+        stats=CycleStatistics(cycles=2**32 + 7, lateness_p99_us=801.0, missed_periods=3),
+        last_command=records[-1],
+        recent_commands=records[-8:],
+        watchdog=WatchdogState.TRIPPED,
         heartbeat=123,
-        message="hold by hmi watchdog",
+        message="hold by watchdog: HMI link silent for 1.0 s",
     )
-    server = ServerStatus(9, CommandResult.DONE, 8, CommandResult.DONE, WatchdogState.TRIPPED)
-    identity = identity_image(axis_count=2, unit_id=1, read_only=False, watchdog_timeout_ms=500)
-    decoded = decode_status(encode_status(identity, snapshot, server, ("X", "Y")))
-    assert decoded.snapshot == snapshot
-    assert decoded.server == server
+    server = ServerView(
+        requests=(HmiRequest(11, 111, CommandCode.ENABLE, CommandResult.DONE),),
+        upload=HmiRequest(9, 99, CommandCode.LOAD_CURVE, CommandResult.CURVE_CRC_MISMATCH),
+        staging=StagingView(StagingState.HELD, 0x7F000001, 40000, 1200),
+        library_count=2,
+        library=LibraryEntry(1, LibraryState.VALID, CommandResult.NONE, "a.yaml", 7, 173.5, 5),
+        request_message="CURVE_CRC32 = 0x1",
+    )
+    static = static_image(
+        axes=AXES, unit_id=1, read_only=False, watchdog_timeout_ms=500, staging_timeout_ms=5000
+    )
+    decoded = decode_status(encode_status(static, snapshot, server))
+    expected_stats = replace(snapshot.stats, cycles=7)  # CYCLE_COUNT wraps at 2**32
+    assert decoded.snapshot == replace(snapshot, stats=expected_stats)
+    assert decoded.server == replace(server, upload=replace(server.upload, ticket=0))
+    bits = StatusBit
+    assert decoded.status_word == (
+        bits.STATUS_VALID
+        | bits.ENABLED
+        | bits.HOLDING
+        | bits.IN_POSITION
+        | bits.PROGRAM_LOADED
+        | bits.NEXT_PROGRAM
+        | bits.BRAKING
+        | bits.WATCHDOG_TRIPPED
+        | bits.STAGING_HELD
+    )
+
+
+def test_drive_state_unknown_reads_65535() -> None:
+    static = static_image(
+        axes=AXES, unit_id=1, read_only=False, watchdog_timeout_ms=0, staging_timeout_ms=5000
+    )
+    snapshot = StatusSnapshot(axes=(AxisStatus("X", 1, 0.0, 0.0, -1, 0.0),))
+    image = encode_status(static, snapshot, ServerView())
+    assert image[FIELD["AXIS_DRIVE_STATE"].address] == 0xFFFF
+
+
+def test_every_exception_code_is_documented() -> None:
+    text = docgen.render()
+    for code in ExceptionCode:
+        assert f"| {code.value} ({code.name.lower().replace('_', ' ')}) |" in text
 
 
 def test_staging_crc_is_zlib_over_big_endian_registers() -> None:

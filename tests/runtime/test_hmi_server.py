@@ -1,359 +1,423 @@
-"""The HMI Modbus server against a fake machine link, in process on a free port.
-
-Covers the identity block, status encoding, commands once per sequence value, the exception
-codes 2/3/6/11, the curve upload with every rejection code, unit ids 0/255, allowed networks,
-read-only mode, the watchdog and the ``softmotion hmi`` command line.
-"""
+"""The HMI server's semantics against a fake machine, mostly with hand-built frames: status
+before and after the first snapshot, the status word, commands by sequence counter (every
+request its own sequence and result, judged by the machine in queue order, exception 6 only for
+a full mailbox), acknowledgements naming the origin, the contiguous holding block and write-time
+limits, programs loaded while moving, the staging hold, the program library, access."""
 
 from __future__ import annotations
 
-import argparse
-import io
 import math
-import socket
 import struct
 import threading
 import time
-from collections.abc import Iterator
+import zlib
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-from pymodbus.client import ModbusTcpClient
+from fake_machine_link import SIM, FakeMachine, hmi_config
+from modbus_wire import Wire, WireError, write_pdu
 
-from planner.nurbs import NurbsCurve
-from runtime.commands import Command, CommandCode, CommandResult, check_allowed
-from runtime.config import ModbusConfig, WatchdogConfig, load_config
-from runtime.curves import check_travel, load_curve_file
-from runtime.hmi import HmiError, cli
-from runtime.hmi.client import CommandRefused, HmiClient, ModbusReplyError
-from runtime.hmi.registers import FIELD, INPUT_SIZE, MAX_KNOTS, MAX_POINTS, WatchdogState
+from runtime.commands import CommandCode, CommandOrigin, CommandResult
+from runtime.config import ProgramsConfig
+from runtime.curves import load_curve_file
+from runtime.hmi import HmiError
+from runtime.hmi.client import CommandRefused, HmiClient
+from runtime.hmi.registers import (
+    BLOCKS,
+    FIELD,
+    HOLDING_HEAD_END,
+    INPUT_SIZE,
+    STATE_STARTING,
+    HmiStatus,
+    LibraryState,
+    StagingState,
+    StatusBit,
+    Table,
+    decode_status,
+)
 from runtime.hmi.server import HmiServer
 from runtime.hmi.upload import encode_staging, staging_crc, staging_of
-from runtime.status import (
-    AxisStatus,
-    CycleStatistics,
-    Fault,
-    FaultKind,
-    MachineState,
-    StatusSnapshot,
-)
+from runtime.status import Fault, FaultKind, MachineState, MotionPhase, WatchdogState
 
 ROOT = Path(__file__).resolve().parents[2]
-SIM = load_config(ROOT / "configs" / "sim.yaml")
-PAPER = load_curve_file(ROOT / "configs" / "curves" / "paper.yaml")
+PAPER_FILE = ROOT / "configs" / "curves" / "paper.yaml"
+PAPER = load_curve_file(PAPER_FILE)
 S = MachineState
-_NEXT_STATE = {
-    CommandCode.ENABLE: S.STANDBY,
-    CommandCode.DISABLE: S.DISABLED,
-    CommandCode.START: S.MOVING,
-    CommandCode.HOLD: S.HOLDING,
-    CommandCode.RESUME: S.MOVING,
-    CommandCode.STOP: S.STANDBY,
-    CommandCode.QUICK_STOP: S.STANDBY,
-    CommandCode.RESET: S.STANDBY,
-}
+_CODE, _SEQ = FIELD["COMMAND_CODE"].address, FIELD["COMMAND_SEQ"].address
 
 
-class FakeLink:
-    """A machine that applies each accepted command at once and publishes a new snapshot."""
-
-    axis_names = tuple(a.name for a in SIM.axes)
-
-    def __init__(self) -> None:
-        self._snapshot = StatusSnapshot(
-            axes=tuple(AxisStatus(a.name, a.node_id, 0.0, 0.0, 1, 0.0) for a in SIM.axes)
-        )
-        self.applied: list[Command] = []
-        self.loaded: object = None
-        self._lock = threading.Lock()
-
-    def snapshot(self) -> StatusSnapshot:
-        return self._snapshot
-
-    def publish(self, **changes: object) -> None:
-        self._snapshot = replace(self._snapshot, **changes)
-
-    def submit(self, command: Command) -> CommandResult:
-        with self._lock:
-            s = self._snapshot
-            if check_allowed(s.state, command.code) is not None:
-                return CommandResult.REJECTED_STATE
-            if command.code is CommandCode.START and self.loaded is None:
-                return CommandResult.NO_CURVE
-            self.applied.append(command)
-            changes: dict[str, object] = {
-                "last_command_seq": command.seq if command.seq is not None else s.last_command_seq,
-                "last_command_result": CommandResult.DONE,
-                "message": f"{command.code.name.lower()} by {command.origin}",
-            }
-            if command.code in _NEXT_STATE:
-                changes["state"] = _NEXT_STATE[command.code]
-            elif command.code is CommandCode.SET_OVERRIDE:
-                changes["override_percent"] = command.override_percent
-            elif command.code is CommandCode.LOAD_CURVE:
-                self.loaded = command.curve
-                changes["curve_id"] = s.curve_id + 1
-                changes["curve_crc"] = command.curve[1]
-            self._snapshot = replace(s, **changes)
-            return CommandResult.PENDING
-
-    def prepare_curve(self, curve: NurbsCurve, crc32: int) -> object:
-        check_travel(curve, SIM.axes)
-        return (curve, crc32)
+def raw_status(wire: Wire) -> HmiStatus:
+    """The whole input image read block by block over the wire, decoded."""
+    image = [0] * INPUT_SIZE
+    for _title, table, first, end in BLOCKS:
+        if table is Table.INPUT:
+            image[first:end] = wire.read_input(first, end - first)
+    return decode_status(image)
 
 
-def _config(**changes: object) -> ModbusConfig:
-    return replace(ModbusConfig(port=0), **changes)
+def send(wire: Wire, code: CommandCode, *extra: int) -> int:
+    """Write ``code`` with the next sequence value (FC16 from 0); returns that value."""
+    seq = (wire.read_holding(_SEQ, 1)[0] + 1) & 0xFFFF
+    wire.write(_CODE, [code, seq, *extra])
+    return seq
 
 
-@pytest.fixture
-def link() -> FakeLink:
-    return FakeLink()
+def settled(wire: Wire, seq: int, timeout_s: float = 3.0) -> tuple[int, CommandResult]:
+    """(ticket, result) of request ``seq`` once the machine has judged it."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        for request in raw_status(wire).server.requests:
+            if request.seq == seq and request.result != CommandResult.PENDING:
+                return request.ticket, request.result  # type: ignore[return-value]
+        time.sleep(0.01)
+    raise AssertionError(f"request seq {seq} not settled in {timeout_s} s")
 
 
-@pytest.fixture
-def server(link: FakeLink) -> Iterator[HmiServer]:
-    with HmiServer(_config(), link) as hmi:
-        yield hmi
+def wait_state(wire: Wire, state: MachineState, timeout_s: float = 5.0) -> HmiStatus:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        status = raw_status(wire)
+        if status.snapshot is not None and status.snapshot.state is state:
+            return status
+        time.sleep(0.01)
+    raise AssertionError(f"machine not {state.name} in {timeout_s} s")
 
 
-@pytest.fixture
-def client(server: HmiServer) -> Iterator[HmiClient]:
-    with HmiClient(port=server.port, timeout_s=2.0) as hmi:
-        yield hmi
+# -- status ---------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def raw(server: HmiServer) -> Iterator[ModbusTcpClient]:
-    modbus = ModbusTcpClient("127.0.0.1", port=server.port, timeout=2, retries=0)
-    assert modbus.connect()
-    yield modbus
-    modbus.close()
+def test_before_the_first_snapshot_the_status_says_starting(tmp_path: Path) -> None:
+    machine = FakeMachine(tmp_path)
+    with HmiServer(machine, hmi_config()) as hmi, Wire(hmi.port) as wire:
+        assert wire.read_input(FIELD["MACHINE_STATE"].address, 1) == [STATE_STARTING]
+        status = raw_status(wire)
+        assert status.snapshot is None
+        assert not status.status_word & StatusBit.STATUS_VALID
+        image = wire.read_input(FIELD["AXIS_COMMANDED"].address, 36)
+        axis = FIELD["AXIS_NAME"]
+        names = [
+            struct.pack(">2H", *image[axis.address_of(i) - 144 : axis.address_of(i) - 142])
+            for i in range(3)
+        ]
+        assert names == [b"X\0\0\0", b"Y\0\0\0", b"Z\0\0\0"]
+        nodes = [image[FIELD["AXIS_NODE_ID"].address_of(i) - 144] for i in range(3)]
+        assert nodes == [a.node_id for a in SIM.axes]
+        assert math.isnan(struct.unpack(">f", struct.pack(">2H", *image[2:4]))[0])
+        machine.step()
+        status = raw_status(wire)
+        assert status.snapshot is not None and status.snapshot.state is S.DISABLED
+        assert status.status_word & StatusBit.STATUS_VALID
 
 
-def _exception(reply: object) -> int | None:
-    return reply.exception_code if reply.isError() else None  # type: ignore[attr-defined]
+def test_status_word_statusword_phase_and_programs(fake: FakeMachine, wire: Wire) -> None:
+    fake.publish(statusword=0x1237)
+    status = raw_status(wire)
+    assert [a.statusword for a in status.snapshot.axes] == [0x1237] * 3
+    assert status.status_word == StatusBit.STATUS_VALID
+    send(wire, CommandCode.SET_OVERRIDE, 100)  # 10 %: slow enough to watch
+    send(wire, CommandCode.ENABLE)
+    wait_state(wire, S.STANDBY)
+    staging = staging_of(PAPER)
+    _stage(wire, staging)
+    seq = send(wire, CommandCode.LOAD_CURVE)
+    assert settled(wire, seq)[1] is CommandResult.DONE
+    send(wire, CommandCode.START)
+    status = wait_state(wire, S.MOVING)
+    snapshot = status.snapshot
+    assert snapshot.phase is MotionPhase.APPROACH
+    assert status.status_word & StatusBit.APPROACH and status.status_word & StatusBit.MOVING
+    assert status.status_word & StatusBit.ENABLED and status.status_word & StatusBit.PROGRAM_LOADED
+    # During the approach the path registers measure the approach line, not zeros.
+    end = time.monotonic() + 2.0
+    while snapshot.path_s_mm == 0.0 and time.monotonic() < end:
+        snapshot = raw_status(wire).snapshot
+    assert snapshot.phase is MotionPhase.APPROACH
+    assert snapshot.path_length_mm == fake.approach_mm and snapshot.path_s_mm > 0
+    assert snapshot.progress_permille > 0
+    program = snapshot.program
+    assert program.crc32 == staging.crc32 and program.name == f"upload {staging.crc32:08X}"
+    assert program.length_mm == pytest.approx(173.9, abs=0.5)
 
 
-def test_identity_block_and_test_patterns(client: HmiClient, raw: ModbusTcpClient) -> None:
-    regs = raw.read_input_registers(0, count=16, device_id=1).registers
-    assert regs[0] == 0x534D
-    assert regs[2:4] == [0x47F1, 0x2000]
-    assert regs[4:6] == [0x1234, 0x5678]
-    assert regs[9] == 3
-    identity = client.identity
-    assert identity.test_float == 123456.0
-    assert identity.axis_count == 3 and not identity.read_only
-
-
-def test_status_encodes_the_snapshot(link: FakeLink, client: HmiClient) -> None:
-    link.publish(
-        state=S.ERROR_STOP,
-        fault=Fault(FaultKind.FOLLOWING_ERROR, "x", axis="Y", emcy_code=0x8611),
-        axes=(
-            AxisStatus("X", 1, 12.5, 12.25, 4, 0.25),
-            AxisStatus("Y", 2, -3.0, -2.5, 7, -0.5),
-            AxisStatus("Z", 3, 99.0, 98.0, 4, 1.0),
-        ),
-        feed_mm_s=87.5,
-        path_s_mm=43.5,
-        path_length_mm=174.0,
-        override_percent=120.5,
-        stats=CycleStatistics(
-            cycles=70000,
-            lateness_last_us=12.4,
-            lateness_p99_us=801.0,
-            lateness_max_us=3100.6,
-            missed_periods=2,
-        ),
-        curve_id=4,
-        curve_crc=0xDEADBEEF,
-        heartbeat=65537,
-        message="error stop: following error on Y",
+def test_message_is_whole_and_ascii(fake: FakeMachine, wire: Wire) -> None:
+    text = (
+        "error stop: axis Y: following error +1.2345 mm beyond ±1 mm for 6 cycles; "
+        "drive 2 reported EMCY 0x8611 (following error) at 12.5 µs after SYNC; later faults: "
+        "axis Z stale feedback (no TPDO for 25 cycles), café"
     )
-    s = client.status().snapshot
-    assert s.state is S.ERROR_STOP
-    assert s.fault == Fault(
-        FaultKind.FOLLOWING_ERROR,
-        "an axis's following error exceeded its window",
-        axis="Y",
-        emcy_code=0x8611,
-    )
-    assert [(a.name, a.node_id, a.commanded_mm, a.actual_mm, a.drive_state) for a in s.axes] == [
-        ("X", 1, 12.5, 12.25, 4),
-        ("Y", 2, -3.0, -2.5, 7),
-        ("Z", 3, 99.0, 98.0, 4),
-    ]
-    assert s.axes[1].following_error_mm == -0.5
-    assert (s.feed_mm_s, s.path_s_mm, s.path_length_mm) == (87.5, 43.5, 174.0)
-    assert s.progress_permille == 250
-    assert s.override_percent == 120.5
-    assert s.stats.cycles == 70000 and s.stats.missed_periods == 2
-    assert (s.stats.lateness_last_us, s.stats.lateness_p99_us, s.stats.lateness_max_us) == (
-        12.0,
-        801.0,
-        3101.0,
-    )
-    assert (s.curve_id, s.curve_crc, s.heartbeat) == (4, 0xDEADBEEF, 1)
-    assert s.message == "error stop: following error on Y"
+    fake.fault(FaultKind.FOLLOWING_ERROR, text.removeprefix("error stop: "), axis="Y")
+    status = raw_status(wire)
+    expected = text.replace("±", "+/-").replace("µ", "u").replace("é", "e")
+    assert len(text) > 64 and status.snapshot.message == expected
+    assert status.snapshot.fault.kind is FaultKind.FOLLOWING_ERROR
+    assert status.snapshot.fault.axis == "Y"
+    assert status.status_word & StatusBit.FAULT
 
 
-def test_a_read_never_mixes_two_snapshots(link: FakeLink, client: HmiClient) -> None:
+def test_cycle_count_wraps(fake: FakeMachine, wire: Wire) -> None:
+    with fake.paused():
+        fake._state.cycles = 2**32 + 5
+        fake._snapshot = fake._state.snapshot(fake)
+        regs = wire.read_input(FIELD["CYCLE_COUNT"].address, 2)
+    assert regs == [0, 5]
+
+
+def test_a_read_never_mixes_two_snapshots(tmp_path: Path) -> None:
+    machine = FakeMachine(tmp_path)
+    machine.step()
     stop = threading.Event()
 
     def publisher() -> None:
         n = 0
         while not stop.is_set():
             n += 1
-            link.publish(heartbeat=n, path_s_mm=float(n), stats=CycleStatistics(cycles=n))
+            machine.publish(cycles=n, path_s_mm=float(n))
 
-    thread = threading.Thread(target=publisher)
-    thread.start()
-    try:
-        for _ in range(200):
-            s = client.status().snapshot
-            assert s.heartbeat == s.stats.cycles & 0xFFFF == int(s.path_s_mm) & 0xFFFF
-    finally:
-        stop.set()
-        thread.join()
+    with HmiServer(machine, hmi_config()) as hmi, Wire(hmi.port) as wire:
+        thread = threading.Thread(target=publisher)
+        thread.start()
+        try:
+            heartbeat, position = FIELD["HEARTBEAT"].address, FIELD["PATH_POSITION"].address
+            for _ in range(300):
+                regs = wire.read_input(heartbeat, position + 2 - heartbeat)
+                path_s = struct.unpack(">f", struct.pack(">2H", *regs[-2:]))[0]
+                assert regs[0] == int(path_s) & 0xFFFF  # both from one snapshot
+        finally:
+            stop.set()
+            thread.join()
 
 
-def test_a_command_runs_once_per_sequence_value(
-    link: FakeLink, client: HmiClient, raw: ModbusTcpClient
-) -> None:
-    assert _exception(raw.write_registers(0, [CommandCode.ENABLE, 7], device_id=1)) is None
-    assert [c.code for c in link.applied] == [CommandCode.ENABLE]
-    assert link.applied[0].seq == 7 and link.applied[0].origin == "hmi"
-    # The same sequence value again: nothing runs (and the write is harmless).
-    assert _exception(raw.write_registers(0, [CommandCode.ENABLE, 7], device_id=1)) is None
-    assert len(link.applied) == 1
-    # A new sequence value alone (FC6) runs the code already in COMMAND_CODE.
-    raw.write_register(0, CommandCode.SET_OVERRIDE, device_id=1)
-    raw.write_register(2, 1234, device_id=1)
-    assert len(link.applied) == 1
-    assert _exception(raw.write_register(1, 8, device_id=1)) is None
-    assert link.applied[-1] == Command(
-        CommandCode.SET_OVERRIDE, override_percent=123.4, seq=8, origin="hmi"
+# -- commands -------------------------------------------------------------------------------
+
+
+def test_a_refused_command_is_acknowledged_with_its_result(fake: FakeMachine, wire: Wire) -> None:
+    seq = send(wire, CommandCode.START)  # no exception: the write is applied
+    assert wire.read_holding(_CODE, 2) == [CommandCode.START, seq]
+    ticket, result = settled(wire, seq)
+    assert result is CommandResult.REJECTED_STATE and ticket > 0
+    last = raw_status(wire).snapshot.last_command
+    assert (last.ticket, last.seq, last.origin, last.result) == (
+        ticket,
+        seq,
+        CommandOrigin.HMI,
+        CommandResult.REJECTED_STATE,
     )
-    status = client.status()
-    assert status.snapshot.last_command_seq == 8
-    assert status.snapshot.override_percent == 123.4
-    assert (status.server.request_seq, status.server.request_result) == (8, CommandResult.DONE)
+    assert fake.posted[-1].origin is CommandOrigin.HMI
 
 
-def test_client_command_waits_for_the_machine(link: FakeLink, client: HmiClient) -> None:
-    outcome = client.command(CommandCode.ENABLE)
-    assert outcome.result is CommandResult.DONE
-    assert client.status().snapshot.state is S.STANDBY
-
-
-def test_wrong_state_answers_6_and_changes_nothing(
-    link: FakeLink, client: HmiClient, raw: ModbusTcpClient
+def test_commands_are_judged_in_queue_order_against_the_state_they_run_in(
+    fake: FakeMachine, wire: Wire
 ) -> None:
-    before = raw.read_holding_registers(0, count=4, device_id=1).registers
-    reply = raw.write_registers(0, [CommandCode.START, before[1] + 1], device_id=1)
-    assert _exception(reply) == 6
-    assert raw.read_holding_registers(0, count=4, device_id=1).registers == before
-    assert link.applied == []
-    with pytest.raises(CommandRefused) as refused:
-        client.command(CommandCode.HOLD)
-    assert refused.value.result is CommandResult.REJECTED_STATE
-    assert refused.value.exception_code == 6
-    client.command(CommandCode.ENABLE)
-    with pytest.raises(CommandRefused) as refused:
-        client.command(CommandCode.START)
-    assert (refused.value.result, refused.value.exception_code) == (CommandResult.NO_CURVE, 6)
-    assert client.status().snapshot.state is S.STANDBY
+    fake.publish(program=_program(fake), override_percent=10.0)
+    seq = send(wire, CommandCode.ENABLE)
+    assert settled(wire, seq)[1] is CommandResult.DONE
+    with fake.paused():  # START and HOLD are judged in the same period, in that order
+        start = send(wire, CommandCode.START)
+        hold = send(wire, CommandCode.HOLD)
+    assert settled(wire, start)[1] is CommandResult.DONE
+    assert settled(wire, hold)[1] is CommandResult.DONE
+    assert raw_status(wire).snapshot.state is S.HOLDING
+
+
+def test_every_request_has_its_own_sequence_and_result(wire: Wire) -> None:
+    staging = staging_of(PAPER)
+    _stage(wire, staging, crc32=staging.crc32 ^ 1)
+    seqs = [send(wire, CommandCode.LOAD_CURVE) for _ in range(3)]
+    assert len(set(seqs)) == 3
+    requests = raw_status(wire).server.requests
+    assert [(r.seq, r.ticket, r.result) for r in requests[:3]] == [
+        (seq, 0, CommandResult.CURVE_CRC_MISMATCH) for seq in reversed(seqs)
+    ]
+    status = raw_status(wire)
+    assert status.server.upload.seq == seqs[-1]
+    assert "CURVE_CRC32" in status.server.request_message
+
+
+def test_acknowledgements_name_the_origin_after_a_watchdog_hold(
+    fake: FakeMachine, wire: Wire
+) -> None:
+    fake.publish(program=_program(fake), override_percent=10.0)
+    send(wire, CommandCode.ENABLE)
+    wait_state(wire, S.STANDBY)
+    start = send(wire, CommandCode.START)
+    start_ticket, _ = settled(wire, start)
+    fake.watchdog_trip()
+    status = raw_status(wire)
+    last, before = status.snapshot.recent_commands[-1], status.snapshot.recent_commands[-2]
+    assert (last.origin, last.code, last.seq, last.result) == (
+        CommandOrigin.WATCHDOG,
+        CommandCode.HOLD,
+        0,
+        CommandResult.DONE,
+    )
+    assert (before.ticket, before.origin, before.code) == (
+        start_ticket,
+        CommandOrigin.HMI,
+        CommandCode.START,
+    )
+    assert wire.read_input(FIELD["COMMAND_SEQ_ACK"].address, 4) == [
+        0,
+        CommandCode.HOLD,
+        CommandOrigin.WATCHDOG,
+        CommandResult.DONE,
+    ]
+    assert status.snapshot.watchdog is WatchdogState.TRIPPED
+    assert status.status_word & StatusBit.WATCHDOG_TRIPPED
+    assert status.snapshot.message.startswith("hold by watchdog")
+
+
+def test_a_full_mailbox_answers_6_and_applies_nothing(fake: FakeMachine, wire: Wire) -> None:
+    fake.mailbox_size = 0
+    before = wire.read_holding(0, HOLDING_HEAD_END)
+    assert wire.ask(write_pdu(_CODE, [CommandCode.ENABLE, 9])) == b"\x90\x06"
+    assert wire.read_holding(0, HOLDING_HEAD_END) == before
+    assert fake.posted == [] and raw_status(wire).server.requests == ()
+    fake.mailbox_size = 16  # the same write again is safe and runs once
+    wire.write(_CODE, [CommandCode.ENABLE, 9])
+    wire.write(_CODE, [CommandCode.ENABLE, 9])
+    assert settled(wire, 9)[1] is CommandResult.DONE
+    assert len(fake.posted) == 1
+
+
+def test_same_sequence_value_runs_nothing_and_fc6_seq_runs_the_code(
+    fake: FakeMachine, wire: Wire
+) -> None:
+    wire.write(_CODE, [CommandCode.SET_OVERRIDE, 4, 1234])
+    wire.write(_CODE, [CommandCode.SET_OVERRIDE, 4, 1234])
+    assert len(fake.posted) == 1 and fake.posted[0].override_percent == 123.4
+    wire.write(FIELD["OVERRIDE_SETPOINT"].address, [500])
+    assert len(fake.posted) == 1
+    assert wire.ask(struct.pack(">BHH", 6, _SEQ, 5)) == struct.pack(">BHH", 6, _SEQ, 5)
+    assert settled(wire, 5)[1] is CommandResult.DONE
+    assert raw_status(wire).snapshot.override_percent == 50.0
+
+
+def test_heartbeat_changes_and_accepted_requests_are_activity(
+    fake: FakeMachine, wire: Wire
+) -> None:
+    heartbeat = FIELD["HMI_HEARTBEAT"].address
+    wire.write(heartbeat, [1])
+    wire.write(heartbeat, [1])  # unchanged: not a sign of life
+    assert fake.activity == 1
+    send(wire, CommandCode.ENABLE)
+    assert fake.activity == 2
+
+
+# -- holding registers ----------------------------------------------------------------------
+
+
+def test_holding_registers_are_contiguous_up_to_the_staging_header(wire: Wire) -> None:
+    block = wire.read_holding(0, HOLDING_HEAD_END)
+    assert block == [0] * HOLDING_HEAD_END
+    wire.write(0, block)  # a merged block write carrying the reserved registers unchanged
+    with pytest.raises(WireError) as refused:
+        wire.write(7, [1])  # reserved: only 0
+    assert refused.value.code == 3
+    wire.write(FIELD["CURVE_DEGREE"].address, [3, 3, 7, 11])
+    assert wire.read_holding(0, HOLDING_HEAD_END)[16:20] == [3, 3, 7, 11]
 
 
 @pytest.mark.parametrize(
-    ("address", "values", "code"),
-    [
-        (2, [1501], 3),  # override above 150.0 %
-        (0, [11, 1], 3),  # unknown command code
-        (0, [0, 1], 3),  # sequence change with no command
-        (1001, [0], 3),  # low word of a float alone
-        (1000, [0, 0, 0], 3),  # ends inside a float
-        (4, [1], 2),  # reserved
-        (22, [1, 2], 2),  # between header and data
-        (21016, [0], 2),  # beyond the staging area
-    ],
+    ("name", "value"),
+    [("CURVE_POINTS", 2001), ("CURVE_DEGREE", 8), ("CURVE_DIMENSION", 4), ("CURVE_KNOTS", 2009)],
 )
-def test_malformed_and_unmapped_writes(
-    link: FakeLink, raw: ModbusTcpClient, address: int, values: list[int], code: int
-) -> None:
-    before = raw.read_holding_registers(0, count=4, device_id=1).registers
-    assert _exception(raw.write_registers(address, values, device_id=1)) == code
-    assert raw.read_holding_registers(0, count=4, device_id=1).registers == before
-    assert link.applied == []
+def test_header_limits_are_checked_at_write_time(wire: Wire, name: str, value: int) -> None:
+    with pytest.raises(WireError) as refused:
+        wire.write(FIELD[name].address, [value])
+    assert refused.value.code == 3
+    assert wire.read_holding(FIELD[name].address, 1) == [0]
 
 
-def test_other_exception_2_cases(raw: ModbusTcpClient) -> None:
-    assert _exception(raw.read_input_registers(INPUT_SIZE, count=1, device_id=1)) == 2
-    assert _exception(raw.read_input_registers(INPUT_SIZE - 1, count=2, device_id=1)) == 2
-    assert _exception(raw.read_holding_registers(4, count=1, device_id=1)) == 2
-    assert _exception(raw.read_coils(0, count=1, device_id=1)) == 2
-    assert _exception(raw.write_coil(0, True, device_id=1)) == 2
+# -- programs -------------------------------------------------------------------------------
 
 
-def test_more_than_123_registers_in_one_write_answers_3(server: HmiServer) -> None:
-    # The client library refuses to build such a request; send the frame by hand.
-    count = 124
-    pdu = struct.pack(">BHHB", 16, 1000, count, 2 * count) + bytes(2 * count)
-    frame = struct.pack(">HHHB", 1, 0, len(pdu) + 1, 1) + pdu
-    with socket.create_connection(("127.0.0.1", server.port), timeout=2) as sock:
-        sock.sendall(frame)
-        reply = sock.recv(64)
-    assert reply[7] == 0x90 and reply[8] == 3
+def _stage(wire: Wire, staging: object, crc32: int | None = None) -> None:
+    crc = staging.crc32 if crc32 is None else crc32  # type: ignore[attr-defined]
+    wire.write(FIELD["CURVE_DEGREE"].address, [*staging.header, crc >> 16, crc & 0xFFFF])  # type: ignore[attr-defined]
+    for base, registers in (
+        (FIELD["POINT_X"].address, staging.points),  # type: ignore[attr-defined]
+        (FIELD["KNOT"].address, staging.knots),  # type: ignore[attr-defined]
+    ):
+        for offset in range(0, len(registers), 120):
+            wire.write(base + offset, registers[offset : offset + 120])
 
 
-def test_upload_round_trip(link: FakeLink, client: HmiClient) -> None:
+def _program(fake: FakeMachine):  # type: ignore[no-untyped-def]
+    return fake.programs.add(PAPER, fake.config, name="paper", crc32=1)
+
+
+def test_upload_round_trip(fake: FakeMachine, client: HmiClient) -> None:
     outcome = client.load_curve(PAPER)
-    assert outcome.result is CommandResult.DONE
-    curve, crc = link.loaded
-    assert crc == staging_of(PAPER).crc32
-    np.testing.assert_array_equal(curve.control_points, PAPER.control_points.astype(np.float32))
-    np.testing.assert_array_equal(curve.knots, PAPER.knots.astype(np.float32))
-    np.testing.assert_array_equal(curve.weights, PAPER.weights.astype(np.float32))
+    assert outcome.result is CommandResult.DONE and outcome.ticket > 0
+    program = fake.posted[-1].program
+    stored = np.load(program.source)
+    np.testing.assert_array_equal(stored["control_points"], PAPER.control_points.astype(np.float32))
+    np.testing.assert_array_equal(stored["knots"], PAPER.knots.astype(np.float32))
     status = client.status()
-    assert status.snapshot.curve_crc == crc
-    assert status.server.upload_result is CommandResult.DONE
-    assert status.server.upload_seq == outcome.seq
+    assert status.snapshot.program.crc32 == staging_of(PAPER).crc32
+    assert status.server.upload.result is CommandResult.DONE
 
 
-def _paper_arrays() -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
-    return 3, PAPER.control_points.copy(), PAPER.knots.copy(), PAPER.weights.copy()
+def test_a_program_committed_while_moving_becomes_the_next_one(
+    fake: FakeMachine, client: HmiClient
+) -> None:
+    client.command(CommandCode.SET_OVERRIDE, override_percent=50.0)
+    client.load_curve(PAPER)
+    first = client.status().snapshot.program
+    client.command(CommandCode.ENABLE)
+    client.command(CommandCode.START)
+    line = encode_staging(1, [[10.0, 10.0, 5.0], [20.0, 15.0, 5.0]], [0, 0, 1, 1])
+    client.load_curve(line)
+    status = client.status()
+    assert status.snapshot.state is S.MOVING
+    assert status.snapshot.program == first
+    assert status.snapshot.next_program.crc32 == line.crc32
+    assert status.status_word & StatusBit.NEXT_PROGRAM
+    # The next program starts when the current one ends.
+    status = client.wait_for(
+        lambda s: s.snapshot.program.crc32 == line.crc32, 10.0, "the next program to start"
+    )
+    assert status.snapshot.next_program is None and status.snapshot.state is S.MOVING
+    client.wait_for(lambda s: s.snapshot.state is S.STANDBY, 10.0, "the end")
+    client.load_curve(line)
+    client.command(CommandCode.START)
+    client.load_curve(PAPER)
+    client.command(CommandCode.CLEAR_NEXT)
+    assert client.status().snapshot.next_program is None
 
 
 def _bad(change: str) -> object:
-    degree, points, knots, weights = _paper_arrays()
+    degree, points, knots, weights = (
+        3,
+        PAPER.control_points.copy(),
+        PAPER.knots.copy(),
+        PAPER.weights.copy(),
+    )
     if change == "decreasing knots":
         knots[5] = 0.3
     elif change == "wrong knot count":
         knots = knots[:-1]
     elif change == "weight 0":
         weights[2] = 0.0
-    elif change == "negative weight":
-        weights[2] = -1.0
     elif change == "NaN":
         points[3, 1] = math.nan
     elif change == "degree too high":
         degree, points, weights = 7, points[:5], weights[:5]
         knots = np.r_[np.zeros(8), np.ones(4)]
     elif change == "outside travel":
-        points[-1, 0] = 350.0  # the end point, on the curve
+        points[-1, 0] = 350.0
     elif change == "not clamped":
         knots[0] = -0.1
     elif change == "zero length":
         points[:] = points[0]
-    elif change == "dimension 4 (bad header)":
-        return "header", [3, 4, 7, 11]
-    elif change == "too many points":
-        return "header", [3, 3, 2001, 2005]
-    elif change == "degree 9 (bad header)":
-        return "header", [9, 3, 7, 17]
+    elif change == "dimension 1 (bad header)":
+        staging = encode_staging(degree, points, knots, weights)
+        header = (3, 1, *staging.header[2:])
+        return replace(
+            staging, header=header, crc32=staging_crc(header, staging.points, staging.knots)
+        )
     return encode_staging(degree, points, knots, weights)
 
 
@@ -361,172 +425,159 @@ BAD_UPLOADS = [
     ("decreasing knots", CommandResult.CURVE_KNOTS_DECREASING),
     ("wrong knot count", CommandResult.CURVE_KNOT_COUNT),
     ("weight 0", CommandResult.CURVE_BAD_WEIGHT),
-    ("negative weight", CommandResult.CURVE_BAD_WEIGHT),
     ("NaN", CommandResult.CURVE_NOT_FINITE),
     ("degree too high", CommandResult.CURVE_DEGREE_TOO_HIGH),
     ("outside travel", CommandResult.CURVE_OUTSIDE_TRAVEL),
     ("not clamped", CommandResult.CURVE_KNOTS_NOT_CLAMPED),
     ("zero length", CommandResult.CURVE_ZERO_LENGTH),
-    ("dimension 4 (bad header)", CommandResult.CURVE_BAD_HEADER),
-    ("degree 9 (bad header)", CommandResult.CURVE_BAD_HEADER),
-    ("too many points", CommandResult.CURVE_TOO_LARGE),
+    ("dimension 1 (bad header)", CommandResult.CURVE_BAD_HEADER),
 ]
 
 
-def stage_header(client: HmiClient, header: list[int]) -> None:
-    """Write ``header`` with the CRC32 of what is then staged (when it fits the staging area)."""
-    _degree, _dimension, n, k = header
-    crc = 0
-    if n <= MAX_POINTS and k <= MAX_KNOTS:
-        points = client.read_holding(FIELD["POINT_X"].address, 8 * n)
-        knots = client.read_holding(FIELD["KNOT"].address, 2 * k)
-        crc = staging_crc(header, points, knots)
-    client.write(FIELD["CURVE_DEGREE"].address, [*header, crc >> 16, crc & 0xFFFF])
-
-
 @pytest.mark.parametrize(("change", "expected"), BAD_UPLOADS, ids=[b[0] for b in BAD_UPLOADS])
-def test_bad_upload_gets_its_code_and_keeps_the_loaded_curve(
-    link: FakeLink, client: HmiClient, change: str, expected: CommandResult
+def test_a_bad_upload_gets_its_code_and_keeps_the_loaded_program(
+    fake: FakeMachine, client: HmiClient, change: str, expected: CommandResult
 ) -> None:
     client.load_curve(PAPER)
-    loaded, crc_before = link.loaded, client.status().snapshot.curve_crc
-    bad = _bad(change)
+    loaded = client.status().snapshot.program
     with pytest.raises(CommandRefused) as refused:
-        if isinstance(bad, tuple):
-            stage_header(client, bad[1])
-            client.command(CommandCode.LOAD_CURVE)
-        else:
-            client.load_curve(bad)
+        client.load_curve(_bad(change))  # type: ignore[arg-type]
     assert refused.value.result is expected
-    assert refused.value.exception_code == 3
+    assert refused.value.outcome.ticket == 0 and refused.value.outcome.message
     status = client.status()
-    assert status.server.upload_result is expected
-    assert link.loaded is loaded and status.snapshot.curve_crc == crc_before
+    assert status.server.upload.result is expected
+    assert status.snapshot.program == loaded
 
 
-def test_wrong_crc(link: FakeLink, client: HmiClient) -> None:
+# -- staging hold ---------------------------------------------------------------------------
+
+
+def test_the_staging_area_has_one_holder(fake: FakeMachine, hmi: HmiServer) -> None:
     staging = staging_of(PAPER)
-    client.stage(staging, crc32=staging.crc32 ^ 1)
+    with Wire(hmi.port) as a, Wire(hmi.port) as b:
+        _stage(a, staging)
+        status = raw_status(b)
+        view = status.server.staging
+        assert view.state is StagingState.HELD and status.status_word & StatusBit.STAGING_HELD
+        assert view.owner_ip == 0x7F000001 and view.owner_port == a.sock.getsockname()[1]
+        assert 0 < view.hold_left_ms <= 30_000
+        for address, values in ((FIELD["POINT_X"].address, [0, 0]), (16, [1])):
+            with pytest.raises(WireError) as refused:
+                b.write(address, values)
+            assert refused.value.code == 2
+        with pytest.raises(WireError):
+            b.write(FIELD["STAGING_CONTROL"].address, [1])
+        seq = send(b, CommandCode.LOAD_CURVE)  # B's commit: refused, nothing loaded
+        assert settled(b, seq) == (0, CommandResult.STAGING_LOCKED)
+        assert "held by 127.0.0.1" in raw_status(b).server.request_message
+        seq = send(a, CommandCode.LOAD_CURVE)  # the holder's commit loads and frees it
+        assert settled(a, seq)[1] is CommandResult.DONE
+        assert raw_status(b).server.staging.state is StagingState.FREE
+        _stage(b, staging)  # now B may take it ...
+        b.write(FIELD["STAGING_CONTROL"].address, [2])  # ... and abort: header cleared, free
+        assert b.read_holding(16, 6) == [0] * 6
+        assert raw_status(a).server.staging.state is StagingState.FREE
+        a.write(FIELD["STAGING_CONTROL"].address, [1])  # explicit take
+        assert raw_status(b).server.staging.owner_port == a.sock.getsockname()[1]
+    with Wire(hmi.port) as c:  # A's connection closed: free again
+        assert raw_status(c).server.staging.state is StagingState.FREE
+
+
+def test_a_staging_hold_lapses_after_its_timeout(fake: FakeMachine) -> None:
+    hmi = HmiServer(fake, hmi_config(staging_timeout_ms=300))
+    with hmi, Wire(hmi.port) as a, Wire(hmi.port) as b:
+        a.write(16, [1])
+        with pytest.raises(WireError):
+            b.write(16, [2])
+        time.sleep(0.4)
+        b.write(16, [2])
+        assert raw_status(a).server.staging.owner_port == b.sock.getsockname()[1]
+
+
+# -- program library ------------------------------------------------------------------------
+
+
+@pytest.fixture
+def library(tmp_path: Path) -> Path:
+    directory = tmp_path / "library"
+    directory.mkdir()
+    (directory / "a-paper.yaml").write_bytes(PAPER_FILE.read_bytes())
+    (directory / "b-bad.yaml").write_text("degree: 3\ncontrol_points: [[0, 0]]\n")
+    (directory / "notes.txt").write_text("not a program")
+    return directory
+
+
+def test_the_program_library(tmp_path: Path, library: Path) -> None:
+    config = replace(SIM, programs=ProgramsConfig(library_dir=library))
+    machine = FakeMachine(tmp_path / "store", config=config).start()
+    try:
+        with HmiServer(machine, hmi_config()) as hmi, HmiClient(port=hmi.port) as client:
+            assert client.status().server.library_count == 2
+            entry = client.library_entry(1)
+            assert (entry.state, entry.name, entry.points) == (
+                LibraryState.VALID,
+                "a-paper.yaml",
+                7,
+            )
+            assert entry.crc32 == zlib.crc32(PAPER_FILE.read_bytes())
+            assert entry.length_mm == pytest.approx(173.9, abs=0.5)
+            bad = client.library_entry(2)
+            assert bad.state is LibraryState.INVALID and bad.result is CommandResult.CURVE_INVALID
+            assert client.library_entry(3).state is LibraryState.NOT_FOUND
+            outcome = client.load_program(1)
+            assert outcome.result is CommandResult.DONE
+            program = client.status().snapshot.program
+            assert (program.name, program.crc32) == ("a-paper.yaml", entry.crc32)
+            with pytest.raises(CommandRefused) as refused:
+                client.load_program(3)
+            assert refused.value.result is CommandResult.NO_SUCH_PROGRAM
+            with pytest.raises(CommandRefused) as refused:
+                client.load_program(2)
+            assert refused.value.result is CommandResult.CURVE_INVALID
+            (library / "0-first.yaml").write_bytes(PAPER_FILE.read_bytes())
+            assert client.library_count() == 3
+            assert client.library_entry(2).name == "a-paper.yaml"
+    finally:
+        machine.close()
+
+
+def test_no_library_configured(client: HmiClient) -> None:
+    assert client.library_count() == 0
     with pytest.raises(CommandRefused) as refused:
-        client.command(CommandCode.LOAD_CURVE)
-    assert refused.value.result is CommandResult.CURVE_CRC_MISMATCH
-    assert link.loaded is None
-    # The same staged data with its right CRC loads.
-    client.write(FIELD["CURVE_CRC32"].address, [staging.crc32 >> 16, staging.crc32 & 0xFFFF])
-    assert client.command(CommandCode.LOAD_CURVE).result is CommandResult.DONE
+        client.load_program(1)
+    assert refused.value.result is CommandResult.NO_SUCH_PROGRAM
+    assert "no library configured" in refused.value.outcome.message
 
 
-def test_commit_while_moving_answers_6(link: FakeLink, client: HmiClient) -> None:
-    client.load_curve(PAPER)
-    loaded = link.loaded
-    client.command(CommandCode.ENABLE)
-    client.command(CommandCode.START)
-    with pytest.raises(CommandRefused) as refused:
-        client.load_curve(_bad("outside travel"))  # judged on state before its content
-    assert (refused.value.result, refused.value.exception_code) == (
-        CommandResult.REJECTED_STATE,
-        6,
-    )
-    assert link.loaded is loaded
+# -- access ---------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("unit", [1, 0, 255])
-def test_answers_configured_unit_and_0_and_255(raw: ModbusTcpClient, unit: int) -> None:
-    assert raw.read_input_registers(0, count=2, device_id=unit).registers[0] == 0x534D
-
-
-def test_other_unit_ids_answer_0x0b(raw: ModbusTcpClient) -> None:
-    assert _exception(raw.read_input_registers(0, count=2, device_id=7)) == 0x0B
-
-
-def test_refuses_peers_outside_allowed_networks(link: FakeLink) -> None:
-    with HmiServer(_config(allowed_networks=("10.0.0.0/8", "::1/128")), link) as hmi:
+def test_refuses_peers_outside_allowed_networks(fake: FakeMachine) -> None:
+    with HmiServer(fake, hmi_config(allowed_networks=("10.0.0.0/8",))) as hmi:
         client = HmiClient(port=hmi.port, timeout_s=0.5)
         with pytest.raises(HmiError):
             client.connect()
         client.close()
 
 
-def test_read_only_refuses_every_write_with_2(link: FakeLink) -> None:
-    with HmiServer(_config(read_only=True), link) as hmi, HmiClient(port=hmi.port) as client:
-        assert client.identity.read_only
-        with pytest.raises(ModbusReplyError) as refused:
-            client.send(CommandCode.ENABLE)
-        assert refused.value.exception_code == 2
-        assert client.status().snapshot.state is S.DISABLED
-        assert link.applied == []
+def test_read_only_refuses_every_write_with_2(fake: FakeMachine) -> None:
+    with HmiServer(fake, hmi_config(read_only=True)) as hmi, Wire(hmi.port) as wire:
+        assert wire.ask(write_pdu(0, [CommandCode.ENABLE, 1])) == b"\x90\x02"
+        assert wire.ask(struct.pack(">BHH", 6, 3, 1)) == b"\x86\x02"
+        assert raw_status(wire).snapshot.state is S.DISABLED
+        assert fake.posted == []
 
 
-def test_start_refuses_a_busy_port(server: HmiServer, link: FakeLink) -> None:
+def test_start_refuses_a_busy_port(hmi: HmiServer, fake: FakeMachine) -> None:
     with pytest.raises(HmiError, match="cannot listen"):
-        HmiServer(_config(port=server.port), link).start()
+        HmiServer(fake, hmi_config(port=hmi.port)).start()
 
 
-def _watchdog_server(link: FakeLink, timeout_ms: int) -> HmiServer:
-    return HmiServer(_config(watchdog=WatchdogConfig(timeout_ms=timeout_ms)), link)
-
-
-def test_watchdog_holds_a_moving_machine_when_the_hmi_is_silent(link: FakeLink) -> None:
-    link.loaded = object()
-    link.publish(state=S.STANDBY)
-    with _watchdog_server(link, 200) as hmi, HmiClient(port=hmi.port) as client:
-        assert client.identity.watchdog_timeout_ms == 200
-        client.command(CommandCode.START)
-        started = time.monotonic()
-        status = client.wait_for(lambda s: s.snapshot.state is S.HOLDING, 3.0, "the hold")
-        assert time.monotonic() - started < 1.0
-        assert link.applied[-1] == Command(CommandCode.HOLD, origin="hmi watchdog")
-        assert status.snapshot.message == "hold by hmi watchdog"
-        assert status.server.watchdog is WatchdogState.TRIPPED
-        # Sent once: the tripped watchdog waits for the HMI to come back.
-        time.sleep(0.3)
-        assert [c.origin for c in link.applied].count("hmi watchdog") == 1
-        client.heartbeat()
-        assert client.status().server.watchdog is WatchdogState.WATCHING
-
-
-def test_watchdog_is_quiet_while_the_heartbeat_changes(link: FakeLink) -> None:
-    link.loaded = object()
-    link.publish(state=S.STANDBY)
-    with _watchdog_server(link, 200) as hmi, HmiClient(port=hmi.port) as client:
-        client.command(CommandCode.START)
-        end = time.monotonic() + 0.8
-        while time.monotonic() < end:
-            client.heartbeat()
-            time.sleep(0.05)
-        assert client.status().snapshot.state is S.MOVING
-
-
-def _cli(port: int, *argv: str) -> tuple[int, str]:
-    parser = argparse.ArgumentParser()
-    cli.add_arguments(parser)
-    out = io.StringIO()
-    return cli.run(parser.parse_args(["--port", str(port), *argv]), out), out.getvalue()
-
-
-def test_cli_status_commands_and_errors(
-    server: HmiServer, link: FakeLink, capsys: pytest.CaptureFixture[str]
-) -> None:
-    code, text = _cli(server.port, "status")
-    assert code == 0 and "machine   DISABLED" in text and "axis X" in text
-    code, _ = _cli(server.port, "start")
-    assert code == 1
-    err = capsys.readouterr().err
-    assert "Modbus exception 6" in err and "REJECTED_STATE" in err
-    assert _cli(server.port, "enable")[0] == 0
-    code, text = _cli(server.port, "load", str(ROOT / "configs" / "curves" / "paper.yaml"))
-    assert code == 0 and "7 points" in text
-    assert _cli(server.port, "override", "80")[0] == 0
-    assert link.snapshot().override_percent == 80.0
-    assert _cli(server.port, "override", "151")[0] == 1
-    assert "illegal data value" in capsys.readouterr().err
-    code, text = _cli(server.port, "watch", "--count", "3", "--interval", "0.01")
-    assert code == 0 and len(text.splitlines()) == 3
-    code, text = _cli(server.port, "watch", "--until-idle", "--interval", "0.01")
-    assert code == 0 and text.startswith("STANDBY")
-
-
-def test_cli_reports_an_unreachable_machine(capsys: pytest.CaptureFixture[str]) -> None:
-    code, _ = _cli(1, "status")
-    assert code == 1
-    assert "cannot connect" in capsys.readouterr().err
+def test_a_fault_shows_kind_axis_and_later_faults(fake: FakeMachine, wire: Wire) -> None:
+    fake.fault(FaultKind.DRIVE_FAULT, "node 2: EMCY 0x2310", axis="Y")
+    fake.fault(FaultKind.STALE_FEEDBACK, "node 3: no TPDO")
+    status = raw_status(wire)
+    assert status.snapshot.fault == Fault(
+        FaultKind.DRIVE_FAULT, "a drive reported a fault (EMCY or statusword fault bit)", "Y"
+    )
+    assert status.later_fault_count == 1
