@@ -346,3 +346,10 @@ def _status(program: Program | None) -> ProgramStatus | None:
 def hmi_config(**changes: object) -> ModbusConfig:
     """The default ``modbus`` section on a free port, with ``changes``."""
     return replace(ModbusConfig(port=0), **changes)  # type: ignore[arg-type]
+
+
+def serve_fake(store_dir: str, port: int) -> None:
+    """The HMI process's job against a fake machine (a ``multiprocessing`` target)."""
+    from runtime.hmi.server import serve_hmi
+
+    serve_hmi(FakeMachine(Path(store_dir)).start(), hmi_config(port=port))

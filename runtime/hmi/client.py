@@ -34,6 +34,7 @@ from runtime.hmi.registers import (
     INPUT_SIZE,
     MAGIC,
     MAP_VERSION,
+    MAX_KNOTS,
     OVERRIDE_SCALE,
     POINT_REGISTERS,
     HmiRequest,
@@ -383,6 +384,13 @@ class HmiClient:
             another client, ...).
         """
         staging = curve if isinstance(curve, Staging) else staging_of(curve)
+        points, knots = staging.header[2], staging.header[3]
+        if points > self.identity.max_points or knots > MAX_KNOTS:
+            raise HmiError(
+                f"curve upload: {points} control points, {knots} knots: the staging area holds "
+                f"{self.identity.max_points} points and {MAX_KNOTS} knots; put the curve in the "
+                "program library (programs.library_dir) and load it by number"
+            )
         self.stage(staging)
         return self.command(CommandCode.LOAD_CURVE, program_number=0, timeout_s=timeout_s)
 

@@ -275,7 +275,11 @@ class HmiDevice:
             return self._post(request, override_percent=percent)
         number = new(_PROGRAM)
         if number:
-            return self._commit(request, lambda: self._library_program(number), staged=False)
+            return self._commit(
+                request,
+                lambda: self._library.program(number, self._link.config, self._link.programs),
+                staged=False,
+            )
         if not self._staging.may_write(client, self._clock_s()):
             holder = self._staging.holder(self._clock_s())
             self._refuse(
@@ -285,7 +289,8 @@ class HmiDevice:
                 f"hold to end",
             )
             return None
-        staged = [new(at) for at in range(HOLDING_SIZE)]
+        staged = list(holding)
+        staged[address:end] = values
         return self._commit(request, lambda: self._staged_program(staged), staged=True)
 
     def _apply(self, address: int, values: Sequence[int], client: Peer) -> None:
@@ -371,6 +376,9 @@ class HmiDevice:
             except (UploadRejected, LibraryRefused) as exc:
                 self._refuse(request, exc.result, exc.reason)
                 return None
+            finally:
+                if not staged:
+                    await self.list_library()
             outcome = self._post(request, program=program)
             if outcome is None and staged:
                 self._staging.release(request.client)
@@ -386,11 +394,6 @@ class HmiDevice:
             )
         except CurveError as exc:
             raise UploadRejected(result_for(exc), str(exc)) from exc
-
-    def _library_program(self, number: int) -> Program:
-        program = self._library.program(number, self._link.config, self._link.programs)
-        self._library_count = len(self._library.names())
-        return program
 
     # -- program library ----------------------------------------------------------------------
 

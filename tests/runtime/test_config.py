@@ -75,6 +75,19 @@ def test_eds_path_is_relative_to_the_config_file(tmp_path: Path) -> None:
     assert load_config(path).axes[0].eds == tmp_path / "drives" / "x.eds"
 
 
+def test_library_dir_is_relative_to_the_config_file(tmp_path: Path) -> None:
+    (tmp_path / "programs").mkdir()
+    doc = sim_document()
+    doc["programs"] = {"library_dir": "programs"}
+    doc["modbus"]["staging_timeout_ms"] = 5000
+    path = tmp_path / "machine.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    config = load_config(path)
+    assert config.programs.library_dir == tmp_path / "programs"
+    assert config.modbus.staging_timeout_ms == 5000
+    assert parse_config(sim_document()).programs.library_dir is None
+
+
 def _set(doc: dict[str, Any], path: str, value: Any) -> None:
     """Set ``a.b[1].c`` in a nested document; the value ``DELETE`` removes the key."""
     node: Any = doc
@@ -240,6 +253,23 @@ CASES = [
         "config: modbus.watchdog.action = 'panic': expected one of hold, stop",
     ),
     (
+        "modbus.staging_timeout_ms",
+        500,
+        "config: modbus.staging_timeout_ms = 500: expected a value in 1000..3600000",
+    ),
+    (
+        "programs.library_dir",
+        "/nonexistent/programs",
+        "config: programs.library_dir = '/nonexistent/programs': expected an existing directory "
+        "(/nonexistent/programs is none)",
+    ),
+    ("programs.library_dir", 5, "config: programs.library_dir = 5: expected a directory path"),
+    (
+        "programs.library",
+        "x",
+        "config: programs.library = 'x': expected a known key (one of library_dir)",
+    ),
+    (
         "machine.fault_reaction",
         "coast",
         "config: machine.fault_reaction = 'coast': expected one of stop, quick_stop",
@@ -248,7 +278,7 @@ CASES = [
         "hmi",
         {},
         "config: hmi = {}: expected a known key (one of axes, can, cycle, machine, modbus, "
-        "planner, simulation)",
+        "planner, programs, simulation)",
     ),
 ]
 

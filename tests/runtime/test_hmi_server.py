@@ -7,6 +7,10 @@ limits, programs loaded while moving, the staging hold, the program library, acc
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
+import signal
+import socket
 import struct
 import threading
 import time
@@ -16,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fake_machine_link import SIM, FakeMachine, hmi_config
+from fake_machine_link import SIM, FakeMachine, hmi_config, serve_fake
 from modbus_wire import Wire, WireError, write_pdu
 
 from runtime.commands import CommandCode, CommandOrigin, CommandResult
@@ -581,3 +585,31 @@ def test_a_fault_shows_kind_axis_and_later_faults(fake: FakeMachine, wire: Wire)
         FaultKind.DRIVE_FAULT, "a drive reported a fault (EMCY or statusword fault bit)", "Y"
     )
     assert status.later_fault_count == 1
+
+
+def test_serve_hmi_runs_in_its_process_until_sigterm(tmp_path: Path) -> None:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    process = multiprocessing.get_context("spawn").Process(
+        target=serve_fake, args=(str(tmp_path), port)
+    )
+    process.start()
+    try:
+        end = time.monotonic() + 30.0
+        while True:
+            try:
+                wire = Wire(port)
+                break
+            except OSError:
+                assert time.monotonic() < end and process.is_alive(), "serve_hmi did not listen"
+                time.sleep(0.05)
+        with wire:
+            assert wire.read_input(0, 2) == [0x534D, 2]
+            os.kill(process.pid, signal.SIGTERM)
+            assert wire.closed_by_server(timeout_s=10.0)
+        process.join(10.0)
+        assert process.exitcode == 0
+    finally:
+        if process.is_alive():
+            process.kill()
