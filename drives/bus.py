@@ -34,9 +34,7 @@ ARPHRD_CAN = 280
 #: Interfaces whose bitrate is not set through python-can: SocketCAN links are configured with
 #: ``ip link``, and the software buses have none. Passing one would be silently ignored, so the
 #: factory drops it rather than pretend it was applied.
-_NO_BITRATE_INTERFACES = frozenset(
-    {"virtual", "local", "socketcan", "socketcand", "udp_multicast"}
-)
+_NO_BITRATE_INTERFACES = frozenset({"virtual", "local", "socketcan", "socketcand", "udp_multicast"})
 
 #: Options the factory adds per interface, keyed by the configured interface name.
 _INTERFACE_OPTIONS: dict[str, dict[str, Any]] = {

@@ -228,11 +228,11 @@ def _ascii(name: str, address: int, chars: int, description: str, **kw: object) 
 
 _I, _H = Table.INPUT, Table.HOLDING
 _COMMANDS_BASE, _REQUESTS_BASE, _HISTORY_STRIDE = 48, 96, 6
-_AXIS_BASE, _AXIS_STRIDE = 144, 12
-_STATS_BASE = 180
-_PROGRAM_BASE, _PROGRAM_STRIDE = 196, 38
-_LIBRARY_BASE = 272
-_MESSAGE_BASE = 320
+_AXIS_BASE, _AXIS_STRIDE = 144, 14
+_STATS_BASE = _AXIS_BASE + MAX_AXES * _AXIS_STRIDE
+_PROGRAM_BASE, _PROGRAM_STRIDE = _STATS_BASE + 22, 38
+_LIBRARY_BASE = _PROGRAM_BASE + 2 * _PROGRAM_STRIDE
+_MESSAGE_BASE = _LIBRARY_BASE + 48
 _REQUEST_MESSAGE_BASE = _MESSAGE_BASE + MESSAGE_CHARS // 2
 _HEADER_BASE = 16
 _POINT_BASE, _POINT_STRIDE = 1000, 8
@@ -447,15 +447,22 @@ FIELDS: tuple[Field, ...] = (
         unit="mm",
     ),
     _axis(
-        "AXIS_DRIVE_STATE",
+        "AXIS_PEAK_FOLLOWING_ERROR",
         6,
+        Kind.F32,
+        "largest |following error| since the last START",
+        unit="mm",
+    ),
+    _axis(
+        "AXIS_DRIVE_STATE",
+        8,
         Kind.U16,
         f"CiA 402 state of the drive; {DRIVE_STATE_UNKNOWN} when the statusword matches none",
         values=DriveState,
     ),
-    _axis("AXIS_STATUSWORD", 7, Kind.U16, "raw CiA 402 statusword 0x6041 of the last feedback"),
-    _axis("AXIS_NODE_ID", 8, Kind.U16, "CANopen node id of the drive"),
-    _axis("AXIS_NAME", 10, Kind.ASCII, "axis name (4 characters)", registers=2),
+    _axis("AXIS_STATUSWORD", 9, Kind.U16, "raw CiA 402 statusword 0x6041 of the last feedback"),
+    _axis("AXIS_NODE_ID", 10, Kind.U16, "CANopen node id of the drive"),
+    _axis("AXIS_NAME", 12, Kind.ASCII, "axis name (4 characters)", registers=2),
     # Cycle statistics.
     Field(
         "CYCLE_COUNT",
@@ -471,13 +478,27 @@ FIELDS: tuple[Field, ...] = (
                 ("LATENESS_LAST_US", "wake-up lateness, last cycle"),
                 ("LATENESS_P50_US", "wake-up lateness, median"),
                 ("LATENESS_P99_US", "wake-up lateness, 99th percentile"),
+                ("LATENESS_P999_US", "wake-up lateness, 99.9th percentile"),
                 ("LATENESS_MAX_US", "wake-up lateness, maximum"),
                 ("EXECUTION_LAST_US", "cycle execution time, last"),
                 ("EXECUTION_MAX_US", "cycle execution time, maximum"),
             )
         )
     ),
-    Field("MISSED_PERIODS", _I, _STATS_BASE + 14, Kind.U32, "periods skipped: a cycle was late"),
+    Field("MISSED_PERIODS", _I, _STATS_BASE + 16, Kind.U32, "periods skipped: a cycle was late"),
+    Field(
+        "OVERRIDES_APPLIED",
+        _I,
+        _STATS_BASE + 18,
+        Kind.U32,
+        "feed-override changes whose re-planned setpoints were reached since start",
+    ),
+    _u16(
+        "OVERRIDE_LATENCY_PERIODS",
+        _I,
+        _STATS_BASE + 20,
+        "periods from the last override change to its first re-planned setpoint",
+    ),
     # Programs: element 0 the active program, 1 the next one.
     _program("PROGRAM_ID", 0, Kind.U32, "program id (0 = none)"),
     _program(
@@ -1059,16 +1080,20 @@ _MACHINE = (
     "LATENESS_LAST_US",
     "LATENESS_P50_US",
     "LATENESS_P99_US",
+    "LATENESS_P999_US",
     "LATENESS_MAX_US",
     "EXECUTION_LAST_US",
     "EXECUTION_MAX_US",
     "MISSED_PERIODS",
+    "OVERRIDES_APPLIED",
+    "OVERRIDE_LATENCY_PERIODS",
 )
 _MACHINE_ROW = _Row(_MACHINE)
 _AXIS = (
     "AXIS_COMMANDED",
     "AXIS_ACTUAL",
     "AXIS_FOLLOWING_ERROR",
+    "AXIS_PEAK_FOLLOWING_ERROR",
     "AXIS_DRIVE_STATE",
     "AXIS_STATUSWORD",
     "AXIS_NODE_ID",
@@ -1102,10 +1127,13 @@ def _put_machine(image: list[int], snapshot: StatusSnapshot, staging: StagingSta
         round(stats.lateness_last_us),
         round(stats.lateness_p50_us),
         round(stats.lateness_p99_us),
+        round(stats.lateness_p999_us),
         round(stats.lateness_max_us),
         round(stats.execution_last_us),
         round(stats.execution_max_us),
         stats.missed_periods,
+        stats.overrides_applied,
+        stats.override_latency_periods,
     )
     _MACHINE_ROW.put(image, row)
     for axis, axis_row in zip(snapshot.axes, _AXIS_ROWS, strict=False):
@@ -1116,6 +1144,7 @@ def _put_machine(image: list[int], snapshot: StatusSnapshot, staging: StagingSta
                 axis.commanded_mm,
                 axis.actual_mm,
                 axis.following_error_mm,
+                axis.peak_following_error_mm,
                 drive_state,
                 axis.statusword,
                 axis.node_id,
@@ -1198,6 +1227,7 @@ def decode_status(image: Sequence[int]) -> HmiStatus:
             actual_mm=float(g("AXIS_ACTUAL", i)),
             drive_state=_drive_state(int(g("AXIS_DRIVE_STATE", i))),
             following_error_mm=float(g("AXIS_FOLLOWING_ERROR", i)),
+            peak_following_error_mm=float(g("AXIS_PEAK_FOLLOWING_ERROR", i)),
             statusword=int(g("AXIS_STATUSWORD", i)),
         )
         for i in range(min(int(g("AXIS_COUNT")), MAX_AXES))
@@ -1251,10 +1281,13 @@ def decode_status(image: Sequence[int]) -> HmiStatus:
             lateness_last_us=float(g("LATENESS_LAST_US")),
             lateness_p50_us=float(g("LATENESS_P50_US")),
             lateness_p99_us=float(g("LATENESS_P99_US")),
+            lateness_p999_us=float(g("LATENESS_P999_US")),
             lateness_max_us=float(g("LATENESS_MAX_US")),
             execution_last_us=float(g("EXECUTION_LAST_US")),
             execution_max_us=float(g("EXECUTION_MAX_US")),
             missed_periods=int(g("MISSED_PERIODS")),
+            override_latency_periods=int(g("OVERRIDE_LATENCY_PERIODS")),
+            overrides_applied=int(g("OVERRIDES_APPLIED")),
         ),
         last_command=commands[-1] if commands else None,
         recent_commands=commands,

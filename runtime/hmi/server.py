@@ -52,8 +52,8 @@ from runtime.hmi.protocol import (
     frame_bytes,
     read_frames,
 )
-from runtime.version import VERSION
 from runtime.hmi.staging import Peer
+from runtime.version import VERSION
 
 log = logging.getLogger(__name__)
 
@@ -62,9 +62,7 @@ EXTRA_UNIT_IDS = (0, 255)
 #: Requests read ahead of their answers on one connection before reading pauses.
 MAX_QUEUED_FRAMES = 64
 #: What FC17 and FC43/14 report.
-IDENTITY = DeviceIdentity(
-    vendor_name="softmotion", product_code="softmotion", revision=VERSION
-)
+IDENTITY = DeviceIdentity(vendor_name="softmotion", product_code="softmotion", revision=VERSION)
 
 
 class _Connection(asyncio.Protocol):

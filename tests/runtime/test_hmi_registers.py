@@ -135,7 +135,7 @@ def test_status_round_trip() -> None:
     snapshot = StatusSnapshot(
         state=MachineState.HOLDING,
         axes=(
-            AxisStatus("X", 1, 1.5, 1.25, 4, -0.25, statusword=0x1237),
+            AxisStatus("X", 1, 1.5, 1.25, 4, -0.25, peak_following_error_mm=0.5, statusword=0x1237),
             AxisStatus("Y", 2, 2.5, 2.0, -1, 0.5, statusword=0x0008),
         ),
         phase=MotionPhase.BRAKING,
@@ -146,7 +146,14 @@ def test_status_round_trip() -> None:
         program=ProgramStatus(3, "upload CAFEF00D", 0xCAFEF00D, 173.5),
         next_program=ProgramStatus(4, "a-paper.yaml", 0x12345678, 10.0),
         override_percent=55.5,
-        stats=CycleStatistics(cycles=2**32 + 7, lateness_p99_us=801.0, missed_periods=3),
+        stats=CycleStatistics(
+            cycles=2**32 + 7,
+            lateness_p99_us=801.0,
+            lateness_p999_us=2500.0,
+            missed_periods=3,
+            override_latency_periods=2,
+            overrides_applied=4,
+        ),
         last_command=records[-1],
         recent_commands=records[-8:],
         watchdog=WatchdogState.TRIPPED,

@@ -40,6 +40,7 @@ from runtime.hmi.registers import (
     StatusBit,
     Table,
     decode_status,
+    get,
 )
 from runtime.hmi.server import HmiServer
 from runtime.hmi.upload import encode_staging, staging_crc, staging_of
@@ -99,16 +100,13 @@ def test_before_the_first_snapshot_the_status_says_starting(tmp_path: Path) -> N
         status = raw_status(wire)
         assert status.snapshot is None
         assert not status.status_word & StatusBit.STATUS_VALID
-        image = wire.read_input(FIELD["AXIS_COMMANDED"].address, 36)
-        axis = FIELD["AXIS_NAME"]
-        names = [
-            struct.pack(">2H", *image[axis.address_of(i) - 144 : axis.address_of(i) - 142])
-            for i in range(3)
-        ]
-        assert names == [b"X\0\0\0", b"Y\0\0\0", b"Z\0\0\0"]
-        nodes = [image[FIELD["AXIS_NODE_ID"].address_of(i) - 144] for i in range(3)]
+        first = FIELD["AXIS_COMMANDED"].address
+        image = [0] * first + wire.read_input(first, FIELD["AXIS_NAME"].end - first)
+        names = [get(image, FIELD["AXIS_NAME"], i) for i in range(3)]
+        assert names == ["X", "Y", "Z"]
+        nodes = [get(image, FIELD["AXIS_NODE_ID"], i) for i in range(3)]
         assert nodes == [a.node_id for a in SIM.axes]
-        assert math.isnan(struct.unpack(">f", struct.pack(">2H", *image[2:4]))[0])
+        assert all(math.isnan(get(image, FIELD["AXIS_ACTUAL"], i)) for i in range(3))
         machine.step()
         status = raw_status(wire)
         assert status.snapshot is not None and status.snapshot.state is S.DISABLED

@@ -20,9 +20,9 @@ from fake_machine_link import FakeMachine
 from modbus_wire import Wire, WireError, adu, read_pdu, write_pdu
 
 from runtime.commands import CommandCode
-from runtime.hmi.registers import FIELD, HOLDING_HEAD_END, MAGIC, MAP_VERSION
-from runtime.version import VERSION
+from runtime.hmi.registers import FIELD, HOLDING_HEAD_END, INPUT_SIZE, MAGIC, MAP_VERSION
 from runtime.hmi.server import HmiServer
+from runtime.version import VERSION
 
 
 def test_identity_block_and_test_patterns(wire: Wire) -> None:
@@ -170,8 +170,8 @@ def test_read_device_identification(wire: Wire) -> None:
 
 
 def test_refusals_use_2_3_and_6_never_4(fake: FakeMachine, wire: Wire) -> None:
-    assert wire.ask(read_pdu(560, 1)) == b"\x84\x02"
-    assert wire.ask(read_pdu(559, 2)) == b"\x84\x02"
+    assert wire.ask(read_pdu(INPUT_SIZE, 1)) == b"\x84\x02"
+    assert wire.ask(read_pdu(INPUT_SIZE - 1, 2)) == b"\x84\x02"
     assert wire.ask(write_pdu(0, [13, 1])) == b"\x90\x03"  # code above the largest
     assert wire.ask(write_pdu(0, [CommandCode.SHUTDOWN, 1])) == b"\x90\x03"
     assert wire.ask(write_pdu(0, [0, 1])) == b"\x90\x03"  # sequence change without a code
