@@ -141,8 +141,8 @@ def format_status(status: HmiStatus) -> str:
         lines.append(
             f"axis {axis.name:<4} commanded {axis.commanded_mm:10.4f}  actual "
             f"{axis.actual_mm:10.4f}  following error {axis.following_error_mm:8.4f} mm  "
-            f"node {axis.node_id} {_drive_state(axis.drive_state)} "
-            f"(statusword 0x{axis.statusword:04X})"
+            f"statusword 0x{axis.statusword:04X}  node {axis.node_id} "
+            f"{_drive_state(axis.drive_state)}"
         )
     for label, program in (("program", s.program), ("next", s.next_program)):
         if program is not None:

@@ -23,17 +23,23 @@ Implements :class:`runtime.hmi.protocol.RegisterDevice` for the map of
   answered normally and recorded with its result and reason (REQUEST_MESSAGE), nothing posted.
 
 Threading: every method runs on the server's event loop thread; blocking work (curve decoding,
-validation, file I/O) runs in worker threads through :func:`asyncio.to_thread`.
+validation, arc length, file I/O) runs in one worker thread at normal scheduling (SCHED_OTHER):
+the HMI process may run at a real-time priority, and a long computation there would count
+against the real-time budget the cycle and the drives share.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import os
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TypeVar
 
 from planner.errors import CurveError
 from runtime.commands import Command, CommandCode, CommandOrigin, CommandResult
@@ -68,6 +74,7 @@ from runtime.programs import Program
 from runtime.status import StatusSnapshot
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 _SINGLE, _HIGH, _LOW = 1, 2, 3
 _CODE = FIELD["COMMAND_CODE"].address
@@ -115,6 +122,12 @@ def _holding_layout() -> tuple[list[int], list[int]]:
     return roles, maxima
 
 
+def _normal_scheduling() -> None:
+    """Run the calling (worker) thread at normal scheduling, whatever the process's class."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def _mapped(address: int, end: int) -> bool:
     return any(first <= address and end <= last for first, last in _HOLDING_RANGES)
 
@@ -159,6 +172,9 @@ class HmiDevice:
         self._version = 0
         self._cache: tuple[StatusSnapshot | None, int, StagingView, bytes] | None = None
         self._tasks: set[asyncio.Task[None]] = set()
+        self._worker = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="hmi-curves", initializer=_normal_scheduling
+        )
 
     # -- status -------------------------------------------------------------------------------
 
@@ -372,7 +388,7 @@ class HmiDevice:
     ) -> Awaitable[WriteOutcome]:
         async def commit() -> WriteOutcome:
             try:
-                program = await asyncio.to_thread(prepare)
+                program = await self._in_worker(prepare)
             except (UploadRejected, LibraryRefused) as exc:
                 self._refuse(request, exc.result, exc.reason)
                 return None
@@ -399,7 +415,7 @@ class HmiDevice:
 
     async def list_library(self) -> None:
         """List the library directory again (LIBRARY_COUNT)."""
-        self._library_count = len(await asyncio.to_thread(self._library.names))
+        self._library_count = len(await self._in_worker(self._library.names))
         self._version += 1
 
     def _browse(self, number: int) -> None:
@@ -407,8 +423,8 @@ class HmiDevice:
         self._version += 1
 
         async def read() -> None:
-            names = await asyncio.to_thread(self._library.names)
-            entry = await asyncio.to_thread(self._library.entry, number, self._link.config)
+            names = await self._in_worker(self._library.names)
+            entry = await self._in_worker(lambda: self._library.entry(number, self._link.config))
             if self._holding[_LIBRARY_SELECT] == number:
                 self._library_count = len(names)
                 self._library_entry = entry
@@ -417,6 +433,13 @@ class HmiDevice:
         task = asyncio.get_running_loop().create_task(read())
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
+
+    def _in_worker(self, work: Callable[[], T]) -> Awaitable[T]:
+        return asyncio.get_running_loop().run_in_executor(self._worker, work)
+
+    def close(self) -> None:
+        """Stop the worker thread (after the work it has)."""
+        self._worker.shutdown(wait=True)
 
     # -- connections --------------------------------------------------------------------------
 

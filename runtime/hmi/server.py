@@ -323,6 +323,7 @@ class HmiServer:
             with contextlib.suppress(asyncio.CancelledError):
                 await settle
             await server.wait_closed()
+            self.device.close()
 
     async def _settle(self) -> None:
         """Collect the machine's results of posted requests even when nobody reads status."""

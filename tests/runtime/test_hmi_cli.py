@@ -33,7 +33,7 @@ def test_status_commands_and_refusals(
 ) -> None:
     code, text = _cli(hmi.port, "status")
     assert code == 0 and "machine   DISABLED" in text and "axis X" in text
-    assert "status    STATUS_VALID" in text and "statusword 0x0250" in text
+    assert "status    STATUS_VALID" in text and "statusword 0x0250  node 1 " in text
     code, _ = _cli(hmi.port, "start")
     assert code == 1
     err = capsys.readouterr().err
