@@ -33,7 +33,7 @@ RUN_TIMEOUT_S = float(os.environ.get("SOFTMOTION_E2E_RUN_S", "30"))
 def connect_hmi(
     process: subprocess.Popen, port: int, log: Path, *, timeout_s: float, client_timeout_s: float
 ) -> HmiClient:
-    """An HMI client connected to the machine, once it listens.
+    """An HMI client connected to the machine, once it listens and has a status.
 
     :raises AssertionError: with the machine's log, if the process exits first.
     """
@@ -44,6 +44,8 @@ def connect_hmi(
         client = HmiClient(port=port, timeout_s=client_timeout_s)
         try:
             client.connect()
+            # The HMI answers before the cycle's first status (MACHINE_STATE STARTING).
+            client.wait_for(lambda s: s.snapshot is not None, timeout_s, "the first status")
             return client
         except Exception:
             client.close()

@@ -406,7 +406,14 @@ FIELDS: tuple[Field, ...] = (
     *_history(
         _COMMANDS_BASE,
         [
-            ("COMMAND_TICKET", 0, Kind.U32, "runtime-wide ticket of the command (0 = none)", None),
+            (
+                "COMMAND_TICKET",
+                0,
+                Kind.U32,
+                "runtime-wide ticket of the command (0 for one the machine made itself, e.g. "
+                "the watchdog's)",
+                None,
+            ),
             ("COMMAND_SEQ_ACK", 2, Kind.U16, "its COMMAND_SEQ (0 when not from an HMI)", None),
             ("COMMAND_CODE_ACK", 3, Kind.U16, "its command code", CommandCode),
             ("COMMAND_ORIGIN", 4, Kind.U16, "who sent it", CommandOrigin),
@@ -1166,8 +1173,10 @@ def as_enum(enum: type[IntEnum], value: int) -> IntEnum | int:
 
 
 def _history_rows(image: Sequence[int], names: Sequence[str]) -> list[list[int]]:
+    """The filled entries of a history: column 2 is the command code in both histories, and an
+    empty entry has code 0, no command's."""
     rows = [[int(get(image, FIELD[name], i)) for name in names] for i in range(HISTORY)]
-    return [row for row in rows if row[0] or row[1]]
+    return [row for row in rows if row[2]]
 
 
 def decode_server(image: Sequence[int]) -> ServerView:

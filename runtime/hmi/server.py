@@ -74,8 +74,8 @@ class _Connection(asyncio.Protocol):
         self.peer = Peer("", 0)
         self._buffer = bytearray()
         self._queue: deque[Frame] = deque()
-        self._busy = False
-        """An answer is being awaited (a commit); later frames wait for it."""
+        self._waiting: asyncio.Task[None] | None = None
+        """The answer being awaited (a commit); later frames wait for it."""
         self._write_paused = False
         self._read_paused = False
         self._close_reason: str | None = None
@@ -153,17 +153,18 @@ class _Connection(asyncio.Protocol):
         if transport is None or transport.is_closing():
             return
         replies: list[bytes] = []
-        while self._queue and not self._busy and not self._write_paused:
+        while self._queue and self._waiting is None and not self._write_paused:
             frame = self._queue.popleft()
             pdu = self._answer(frame)
             if isinstance(pdu, bytes):
                 replies.append(frame_bytes(frame.transaction_id, frame.unit_id, pdu))
             else:
-                self._busy = True
-                asyncio.get_running_loop().create_task(self._answer_later(frame, pdu))
+                self._waiting = asyncio.get_running_loop().create_task(
+                    self._answer_later(frame, pdu)
+                )
         if replies:
             transport.write(b"".join(replies))
-        idle = not self._queue and not self._busy
+        idle = not self._queue and self._waiting is None
         if self._close_reason is not None and idle:
             transport.close()
             return
@@ -193,7 +194,7 @@ class _Connection(asyncio.Protocol):
         except Exception:  # a bug: answer 4 rather than lose the connection's order
             log.exception("modbus: %s: request %s failed", self.peer, frame.pdu.hex(" "))
             pdu = exception_pdu(frame.pdu[0], ExceptionCode.SERVER_DEVICE_FAILURE)
-        self._busy = False
+        self._waiting = None
         transport = self._transport
         if transport is not None and not transport.is_closing():
             transport.write(frame_bytes(frame.transaction_id, frame.unit_id, pdu))

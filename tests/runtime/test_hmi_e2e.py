@@ -25,11 +25,11 @@ from machine_process import (
     run_paper_polled,
 )
 
-from runtime.commands import ALLOWED, CommandCode, CommandResult
+from runtime.commands import ALLOWED, CommandCode, CommandOrigin, CommandResult
 from runtime.hmi.client import CommandRefused, ModbusReplyError
-from runtime.hmi.registers import FIELD, MAGIC
+from runtime.hmi.registers import FIELD, HMI_COMMANDS, MAGIC, MAP_VERSION
 from runtime.hmi.upload import encode_staging, staging_of
-from runtime.status import MachineState
+from runtime.status import MachineState, WatchdogState
 
 S = MachineState
 
@@ -91,26 +91,23 @@ def test_upload_reject_bad_curves_run_to_the_end(machine: Machine) -> None:
     assert client.status().snapshot.state is S.DISABLED
     assert client.load_curve(PAPER).result is CommandResult.DONE
     crc = staging_of(PAPER).crc32
-    assert client.status().snapshot.curve_crc == crc
-    # Wrong CRC.
+    assert client.status().snapshot.program.crc32 == crc
+    # Wrong CRC: the commit is answered, its own request carries the refusal.
     client.stage(staging_of(PAPER), crc32=crc ^ 0x1)
     with pytest.raises(CommandRefused) as refused:
-        client.command(CommandCode.LOAD_CURVE)
-    assert (refused.value.result, refused.value.exception_code) == (
-        CommandResult.CURVE_CRC_MISMATCH,
-        3,
-    )
-    # Every bad curve, then too many points for the staging area.
+        client.command(CommandCode.LOAD_CURVE, program_number=0)
+    assert refused.value.result is CommandResult.CURVE_CRC_MISMATCH
+    assert refused.value.outcome.ticket == 0 and "CURVE_CRC32" in refused.value.outcome.message
+    # Every bad curve, then too many points for the staging area (refused at write time).
     for label, expected, staging in _bad_uploads():
         with pytest.raises(CommandRefused) as refused:
             client.load_curve(staging)
         assert refused.value.result is expected, label
-        assert client.status().snapshot.curve_crc == crc, label
-    client.write(FIELD["CURVE_DEGREE"].address, [3, 3, 2001, 2005, 0, 0])
-    with pytest.raises(CommandRefused) as refused:
-        client.command(CommandCode.LOAD_CURVE)
-    assert refused.value.result is CommandResult.CURVE_TOO_LARGE
-    assert client.status().snapshot.curve_crc == crc
+        assert client.status().snapshot.program.crc32 == crc, label
+    with pytest.raises(ModbusReplyError) as error:
+        client.write(FIELD["CURVE_DEGREE"].address, [3, 3, 2001, 2005, 0, 0])
+    assert error.value.exception_code == 3
+    assert client.status().snapshot.program.crc32 == crc
     # The paper's curve is still the one that runs, to its end point.
     enable_and_start(client)
     result = machine.hmi("--timeout", str(RUN_TIMEOUT_S), "watch", "--until-idle")
@@ -122,25 +119,29 @@ def test_upload_reject_bad_curves_run_to_the_end(machine: Machine) -> None:
     np.testing.assert_allclose(end_positions(status), PAPER.end_point, atol=1e-3)
 
 
-def test_wrong_state_and_read_only_addresses(machine: Machine) -> None:
+def test_refused_commands_are_results_and_unmapped_addresses_answer_2(machine: Machine) -> None:
     client = machine.client
-    before = client.read_holding(0, 4)
     state = client.status().snapshot.state
-    refused_here = [c for c in CommandCode if c not in ALLOWED[state]]
+    refused_here = [c for c in HMI_COMMANDS if c not in ALLOWED[state]]
     assert refused_here
     for code in refused_here:
         with pytest.raises(CommandRefused) as refused:
-            client.send(code)
-        assert refused.value.exception_code == 6, code
-    assert client.read_holding(0, 4) == before
-    assert client.status().snapshot.state is state
-    for address in (4, 22, 999):
+            client.command(code)  # answered normally; the machine's refusal is its result
+        assert refused.value.result is CommandResult.REJECTED_STATE, code
+        assert refused.value.outcome.ticket > 0, code
+    status = client.status()
+    assert status.snapshot.state is state
+    assert status.snapshot.last_command.origin is CommandOrigin.HMI
+    for address in (22, 999, 21016):
         with pytest.raises(ModbusReplyError) as error:
             client.write(address, [1])
         assert error.value.exception_code == 2
+    with pytest.raises(ModbusReplyError) as error:
+        client.write(7, [1])  # reserved: only 0
+    assert error.value.exception_code == 3
     result = machine.hmi(refused_here[0].name.lower().replace("_", "-"))
     assert result.returncode == 1
-    assert "Modbus exception 6" in result.stderr and "REJECTED_STATE" in result.stderr
+    assert "REJECTED_STATE" in result.stderr and "exception" not in result.stderr
 
 
 def _mbpoll() -> str:
@@ -170,7 +171,7 @@ def test_mbpoll_reads_identity_and_status_and_writes_a_command(machine: Machine)
         return done.stdout
 
     identity = _values(run("-a", "1", "-t", "3:hex", "-r", "0", "-c", "6", "127.0.0.1"))
-    assert [int(v, 16) for v in identity] == [MAGIC, 1, 0x47F1, 0x2000, 0x1234, 0x5678]
+    assert [int(v, 16) for v in identity] == [MAGIC, MAP_VERSION, 0x47F1, 0x2000, 0x1234, 0x5678]
     (test_float,) = _values(
         run("-a", "255", "-t", "3:float", "-B", "-r", "2", "-c", "1", "127.0.0.1")
     )
@@ -181,8 +182,9 @@ def test_mbpoll_reads_identity_and_status_and_writes_a_command(machine: Machine)
     assert int(state[0]) == machine.client.status().snapshot.state
     seq = (machine.client.read_holding(FIELD["COMMAND_SEQ"].address, 1)[0] + 1) & 0xFFFF
     run("-t", "4", "-r", "0", "127.0.0.1", str(int(CommandCode.SET_OVERRIDE)), str(seq), "800")
-    status = machine.client.wait_for(lambda s: s.snapshot.last_command_seq == seq, 5.0)
-    assert status.snapshot.override_percent == 80.0
+    outcome = machine.client.outcome(seq, CommandCode.SET_OVERRIDE, timeout_s=5.0)
+    assert outcome.result is CommandResult.DONE
+    assert machine.client.status().snapshot.override_percent == 80.0
     # A refused write: mbpoll reports the Modbus exception and exits 1.
     refused = subprocess.run(
         [*base, "-t", "4", "-r", "2", "127.0.0.1", "1600"],
@@ -217,7 +219,9 @@ def test_watchdog_holds_when_the_hmi_falls_silent(tmp_path: Path) -> None:
         status = client.wait_for(lambda s: s.snapshot.state is S.HOLDING, 5.0, "the hold")
         # Within the timeout plus the watchdog's poll, one cycle and the status poll.
         assert time.monotonic() - started < timeout_ms / 1000 + 0.5
-        assert "hmi watchdog" in status.snapshot.message
+        last = status.snapshot.last_command
+        assert (last.origin, last.code, last.seq) == (CommandOrigin.WATCHDOG, CommandCode.HOLD, 0)
+        assert status.snapshot.watchdog is WatchdogState.TRIPPED
         assert status.snapshot.progress_permille < 1000
     finally:
         machine.stop()

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fake_machine_link import SIM, FakeMachine, hmi_config, serve_fake
-from modbus_wire import Wire, WireError, write_pdu
+from modbus_wire import Wire, WireError, adu, write_pdu
 
 from runtime.commands import CommandCode, CommandOrigin, CommandResult
 from runtime.config import ProgramsConfig
@@ -611,3 +611,13 @@ def test_serve_hmi_runs_in_its_process_until_sigterm(tmp_path: Path) -> None:
     finally:
         if process.is_alive():
             process.kill()
+
+
+def test_requests_after_a_commit_wait_for_its_answer(fake: FakeMachine, wire: Wire) -> None:
+    _stage(wire, staging_of(PAPER))
+    commit = adu(write_pdu(_CODE, [CommandCode.LOAD_CURVE, 40]), tid=41)
+    read = adu(struct.pack(">BHH", 3, _SEQ, 1), tid=42)
+    wire.send(commit + read)
+    assert wire.response() == (41, 1, struct.pack(">BHH", 16, _CODE, 2))
+    assert wire.response() == (42, 1, bytes((3, 2)) + struct.pack(">H", 40))
+    assert settled(wire, 40)[1] is CommandResult.DONE
