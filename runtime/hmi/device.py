@@ -44,7 +44,7 @@ from typing import TypeVar
 from planner.errors import CurveError
 from runtime.commands import Command, CommandCode, CommandOrigin, CommandResult
 from runtime.config import ModbusConfig
-from runtime.hmi.library import LibraryRefused, ProgramLibrary
+from runtime.hmi.library import ProgramLibrary
 from runtime.hmi.link import MachineLink
 from runtime.hmi.protocol import Answer, ExceptionCode, WriteOutcome, registers_bytes
 from runtime.hmi.registers import (
@@ -69,7 +69,7 @@ from runtime.hmi.registers import (
     static_image,
 )
 from runtime.hmi.staging import Peer, StagingHold
-from runtime.hmi.upload import UploadRejected, decode_staging, result_for
+from runtime.hmi.upload import CurveRefused, decode_staging, result_for
 from runtime.programs import Program
 from runtime.status import StatusSnapshot
 
@@ -389,7 +389,7 @@ class HmiDevice:
         async def commit() -> WriteOutcome:
             try:
                 program = await self._in_worker(prepare)
-            except (UploadRejected, LibraryRefused) as exc:
+            except CurveRefused as exc:
                 self._refuse(request, exc.result, exc.reason)
                 return None
             finally:
@@ -409,7 +409,7 @@ class HmiDevice:
                 curve, self._link.config, name=f"upload {crc:08X}", crc32=crc
             )
         except CurveError as exc:
-            raise UploadRejected(result_for(exc), str(exc)) from exc
+            raise CurveRefused(result_for(exc), str(exc)) from exc
 
     # -- program library ----------------------------------------------------------------------
 

@@ -24,22 +24,12 @@ from planner.nurbs import NurbsCurve
 from runtime.commands import CommandResult
 from runtime.config import MachineConfig
 from runtime.curves import check_travel, load_curve_file
-from runtime.hmi import HmiError
 from runtime.hmi.registers import LibraryEntry, LibraryState
-from runtime.hmi.upload import result_for
+from runtime.hmi.upload import CurveRefused, result_for
 from runtime.programs import Program, ProgramStore, curve_length_mm
 
 #: File name suffixes of library programs.
 SUFFIXES = (".yaml", ".yml")
-
-
-class LibraryRefused(HmiError):
-    """A library program that cannot be loaded; ``result`` is the code the HMI sees."""
-
-    def __init__(self, result: CommandResult, reason: str) -> None:
-        self.result = result
-        self.reason = reason
-        super().__init__(f"program library: {result.name}: {reason}")
 
 
 @dataclass(frozen=True)
@@ -55,7 +45,7 @@ class ProgramLibrary:
     def __init__(self, directory: Path | None) -> None:
         self.directory = directory
         self._lock = threading.Lock()
-        self._cache: dict[str, tuple[tuple[int, int], _Checked | LibraryRefused]] = {}
+        self._cache: dict[str, tuple[tuple[int, int], _Checked | CurveRefused]] = {}
 
     def names(self) -> list[str]:
         """The file names, in program number order (empty without a library)."""
@@ -77,7 +67,7 @@ class ProgramLibrary:
             return LibraryEntry(number, LibraryState.NOT_FOUND)
         name = names[number - 1]
         checked = self._check(name, config)
-        if isinstance(checked, LibraryRefused):
+        if isinstance(checked, CurveRefused):
             return LibraryEntry(number, LibraryState.INVALID, checked.result, name)
         return LibraryEntry(
             number,
@@ -92,46 +82,46 @@ class ProgramLibrary:
     def program(self, number: int, config: MachineConfig, store: ProgramStore) -> Program:
         """Program ``number``, checked and stored for the planner.
 
-        :raises LibraryRefused: NO_SUCH_PROGRAM, or the curve's result code.
+        :raises CurveRefused: NO_SUCH_PROGRAM, or the curve's result code.
         """
         names = self.names()
         if not 1 <= number <= len(names):
             where = self.directory if self.directory is not None else "no library configured"
-            raise LibraryRefused(
+            raise CurveRefused(
                 CommandResult.NO_SUCH_PROGRAM,
                 f"PROGRAM_NUMBER = {number}: the library ({where}) has {len(names)} programs",
             )
         name = names[number - 1]
         checked = self._check(name, config)
-        if isinstance(checked, LibraryRefused):
+        if isinstance(checked, CurveRefused):
             raise checked
         try:
             return store.add(checked.curve, config, name=name, crc32=checked.crc32)
         except CurveError as exc:
-            raise LibraryRefused(result_for(exc), f"{name}: {exc}") from exc
+            raise CurveRefused(result_for(exc), f"{name}: {exc}") from exc
 
-    def _check(self, name: str, config: MachineConfig) -> _Checked | LibraryRefused:
+    def _check(self, name: str, config: MachineConfig) -> _Checked | CurveRefused:
         assert self.directory is not None
         path = self.directory / name
         try:
             stat = path.stat()
         except OSError as exc:
-            return LibraryRefused(CommandResult.NO_SUCH_PROGRAM, f"{name}: {exc.strerror}")
+            return CurveRefused(CommandResult.NO_SUCH_PROGRAM, f"{name}: {exc.strerror}")
         key = (stat.st_size, stat.st_mtime_ns)
         with self._lock:
             cached = self._cache.get(name)
         if cached is not None and cached[0] == key:
             return cached[1]
-        checked: _Checked | LibraryRefused
+        checked: _Checked | CurveRefused
         try:
             crc32 = zlib.crc32(path.read_bytes())
             curve = load_curve_file(path)
             check_travel(curve, config.axes)
             checked = _Checked(curve, crc32, curve_length_mm(curve, config))
         except OSError as exc:
-            checked = LibraryRefused(CommandResult.NO_SUCH_PROGRAM, f"{name}: {exc.strerror}")
+            checked = CurveRefused(CommandResult.NO_SUCH_PROGRAM, f"{name}: {exc.strerror}")
         except CurveError as exc:
-            checked = LibraryRefused(result_for(exc), f"{name}: {exc}")
+            checked = CurveRefused(result_for(exc), f"{name}: {exc}")
         with self._lock:
             self._cache[name] = (key, checked)
         return checked

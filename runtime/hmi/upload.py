@@ -59,13 +59,14 @@ _POINTS = FIELD["POINT_X"].address
 _KNOTS = FIELD["KNOT"].address
 
 
-class UploadRejected(HmiError):
-    """A staged curve the commit refuses; ``result`` is the code the HMI sees."""
+class CurveRefused(HmiError):
+    """A curve the server refuses to load (a staged upload or a library program); ``result`` is
+    the code the HMI sees, ``reason`` the text for REQUEST_MESSAGE."""
 
     def __init__(self, result: CommandResult, reason: str) -> None:
         self.result = result
         self.reason = reason
-        super().__init__(f"curve upload: {result.name}: {reason}")
+        super().__init__(f"curve refused: {result.name}: {reason}")
 
 
 def result_for(error: CurveError) -> CommandResult:
@@ -134,12 +135,12 @@ def _floats(registers: Sequence[int]) -> np.ndarray:
 def decode_staging(holding: Sequence[int]) -> tuple[NurbsCurve, int]:
     """The staged curve and its CRC32, from a holding register image starting at address 0.
 
-    :raises UploadRejected: with the result code of the first rule broken (order in the module
+    :raises CurveRefused: with the result code of the first rule broken (order in the module
         docstring).
     """
     degree, dimension, n, k = holding[_HEADER : _HEADER + _HEADER_REGISTERS]
     if n > MAX_POINTS or k > MAX_KNOTS:
-        raise UploadRejected(
+        raise CurveRefused(
             _R.CURVE_TOO_LARGE,
             f"CURVE_POINTS = {n}, CURVE_KNOTS = {k}: the staging area holds at most "
             f"{MAX_POINTS} points and {MAX_KNOTS} knots",
@@ -151,21 +152,19 @@ def decode_staging(holding: Sequence[int]) -> tuple[NurbsCurve, int]:
     knot_regs = holding[_KNOTS : _KNOTS + 2 * k]
     actual = staging_crc(header, point_regs, knot_regs)
     if actual != expected:
-        raise UploadRejected(
+        raise CurveRefused(
             _R.CURVE_CRC_MISMATCH,
             f"CURVE_CRC32 = 0x{expected:08X}, the staged data has CRC32 0x{actual:08X}",
         )
     if not 1 <= degree <= MAX_DEGREE:
-        raise UploadRejected(
-            _R.CURVE_BAD_HEADER, f"CURVE_DEGREE = {degree}, must be 1..{MAX_DEGREE}"
-        )
+        raise CurveRefused(_R.CURVE_BAD_HEADER, f"CURVE_DEGREE = {degree}, must be 1..{MAX_DEGREE}")
     if dimension not in (2, 3):
-        raise UploadRejected(_R.CURVE_BAD_HEADER, f"CURVE_DIMENSION = {dimension}, must be 2 or 3")
+        raise CurveRefused(_R.CURVE_BAD_HEADER, f"CURVE_DIMENSION = {dimension}, must be 2 or 3")
     records = _floats(point_regs).reshape(n, 4)
     try:
         curve = NurbsCurve.from_arrays(
             degree, records[:, :dimension], _floats(knot_regs), weights=records[:, 3]
         )
     except CurveError as exc:
-        raise UploadRejected(result_for(exc), str(exc)) from exc
+        raise CurveRefused(result_for(exc), str(exc)) from exc
     return curve, expected

@@ -42,7 +42,7 @@ from runtime.hmi.registers import (
     u32_words,
     words_ascii,
 )
-from runtime.hmi.upload import RULE_RESULTS, UploadRejected, decode_staging, encode_staging
+from runtime.hmi.upload import RULE_RESULTS, CurveRefused, decode_staging, encode_staging
 from runtime.status import (
     AxisStatus,
     CycleStatistics,
@@ -229,7 +229,7 @@ def test_decode_staging_round_trip_and_crc_check() -> None:
     assert crc == staging.crc32
     np.testing.assert_array_equal(curve.control_points, points)
     np.testing.assert_array_equal(curve.weights, [1.0, 0.5, 1.0])
-    with pytest.raises(UploadRejected) as rejected:
+    with pytest.raises(CurveRefused) as rejected:
         decode_staging(_holding(staging, staging.crc32 ^ 0x8000_0000))
     assert rejected.value.result is CommandResult.CURVE_CRC_MISMATCH
 
