@@ -243,12 +243,12 @@ def _wire() -> list[str]:
         "(e.g. FC3 with 6 data bytes) answers exception 3.",
         f"- Unit ids: `modbus.unit_id`, {_UNITS} (libmodbus and many HMIs send 255); others "
         "answer exception 11.",
-        f"- FC17 (report server id): server id `{IDENTITY.server_id().decode()}` (ASCII), run "
-        "indicator 0xFF (on).",
+        f"- FC17 (report server id): server id `{IDENTITY.product_code} <version>` (ASCII, the "
+        "softmotion version), run indicator 0xFF (on).",
         f"- FC43/14 (read device identification, conformity level 0x81: basic, stream and "
         f"individual access): VendorName (0) `{IDENTITY.vendor_name}`, ProductCode (1) "
         f"`{IDENTITY.product_code}`, MajorMinorRevision (2) = the softmotion version "
-        f"(`{IDENTITY.revision}` here). Read device id codes 1–3 stream the three objects "
+        "(`FIRMWARE_*`). Read device id codes 1–3 stream the three objects "
         "(from the object id asked for, or from 0 when it does not exist); code 4 reads one "
         "(exception 2 for another object id); other codes answer exception 3.",
         "",
