@@ -2,16 +2,16 @@
 
 Prints, for the HMI server and for a reference measured in the same run:
 
-- status read round trip (one FC4 request of registers 0-124: identity, machine status, the
-  command acknowledgements) with 1 client back to back, 10 clients at 20 Hz each (an HMI and
-  SCADA load) and 10 clients back to back (saturation): p50, p99, max;
+- status read round trip (one FC4 request of the core status, input registers 0-111: identity,
+  machine status, axes, cycle statistics) with 1 client back to back, 10 clients at 20 Hz each
+  (an HMI and SCADA load) and 10 clients back to back (saturation): p50, p99, max;
 - throughput of one connection with 1 and with 8 requests in flight (pipelined);
 - the time to upload and commit a 1,000-point curve until the machine has loaded it.
 
 By default the server runs in a process of its own (as the HMI process will) in front of a fake
 machine that publishes a snapshot every 4 ms and judges commands each period
 (``tests/fake_machine_link.py``). The reference is a bare asyncio server, also in a process of its
-own, that answers every frame with a fixed 125-register response: the ratios are the cost of the
+own, that answers every frame with a fixed response of the same size: the ratios are the cost of the
 HMI's framing, checks and status encoding over the wire and the event loop alone. The clients are
 raw sockets on one asyncio loop in this process. ``--port P`` measures a running machine instead
 (no reference, no upload unless the machine is DISABLED or STANDBY).
@@ -37,8 +37,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-STATUS_REQUEST = struct.pack(">BHH", 4, 0, 125)
-STATUS_BYTES = 7 + 2 + 250
+from runtime.hmi.registers import CORE_END  # noqa: E402
+
+STATUS_REQUEST = struct.pack(">BHH", 4, 0, CORE_END)
+STATUS_BYTES = 7 + 2 + 2 * CORE_END
 
 
 def _frame(tid: int, pdu: bytes) -> bytes:
@@ -63,8 +65,8 @@ def _serve_hmi(ready: multiprocessing.Queue, stop: multiprocessing.Event) -> Non
 
 
 def _serve_reference(ready: multiprocessing.Queue, stop: multiprocessing.Event) -> None:
-    """A bare asyncio server: every 12-byte request gets a fixed 125-register answer."""
-    answer_pdu = bytes((4, 250)) + bytes(250)
+    """A bare asyncio server: every 12-byte request gets a fixed answer of the core's size."""
+    answer_pdu = bytes((4, 2 * CORE_END)) + bytes(2 * CORE_END)
 
     class Echo(asyncio.Protocol):
         def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -222,7 +224,7 @@ def main() -> None:
             ports = {"hmi": args.port}
         print(f"HMI benchmark: server on 127.0.0.1:{ports['hmi']}, {args.seconds:g} s each")
         print(
-            f"{'status read (FC4, 125 registers)':<34} {'n':>7} {'p50':>10} {'p99':>10} "
+            f"{f'status read (FC4, {CORE_END} registers)':<34} {'n':>7} {'p50':>10} {'p99':>10} "
             f"{'max':>10} {'p99/ref':>9}"
         )
         for label, clients, rate in (

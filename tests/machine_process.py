@@ -122,7 +122,7 @@ def poll_status(port: int, stop: threading.Event, answers: list[int], errors: li
         while not stop.is_set():
             started = time.monotonic()
             try:
-                status = client.status()
+                status = client.core_status()
                 snapshot = status.snapshot
                 assert isinstance(snapshot.state, MachineState)
                 assert len(snapshot.axes) == 3 and 0 <= snapshot.progress_permille <= 1000

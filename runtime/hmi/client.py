@@ -29,6 +29,7 @@ from runtime.hmi import HmiError
 from runtime.hmi.protocol import MAX_READ_REGISTERS, MAX_WRITE_REGISTERS, ExceptionCode
 from runtime.hmi.registers import (
     BLOCKS,
+    CORE_END,
     FIELD,
     HISTORY,
     INPUT_SIZE,
@@ -230,6 +231,14 @@ class HmiClient:
         image = [0] * INPUT_SIZE
         for first, end in _READ_PLAN:
             image[first:end] = self.read_input(first, end - first)
+        return decode_status(image)
+
+    def core_status(self) -> HmiStatus:
+        """The machine's core status in one FC4 request (one snapshot): state, status word,
+        fault, path, axes, cycle statistics; no histories, programs or messages (the decoded
+        snapshot has none)."""
+        image = [0] * INPUT_SIZE
+        image[:CORE_END] = self.read_input(0, CORE_END)
         return decode_status(image)
 
     def requests(self) -> tuple[HmiRequest, ...]:

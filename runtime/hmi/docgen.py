@@ -31,6 +31,7 @@ from runtime.hmi.protocol import (
 )
 from runtime.hmi.registers import (
     BLOCKS,
+    CORE_END,
     DRIVE_STATE_UNKNOWN,
     FIELD,
     FIELDS,
@@ -292,7 +293,8 @@ def render() -> str:
         "reserved registers read 0; addresses from "
         f"{INPUT_SIZE} on answer exception 2. Every request is served from one snapshot of one "
         "cycle, and every block below fits one request: a block read at once is never half of "
-        "one cycle and half of the next.",
+        f"one cycle and half of the next. The core status (identity, machine status, axes, "
+        f"cycle statistics) is input registers 0–{CORE_END - 1}: one request.",
         f"- Holding registers 0–{HOLDING_HEAD_END - 1} are contiguous: one FC3 reads them all, "
         "reserved ones read 0 and take only 0 (a block write that carries them unchanged is "
         "accepted). The staging data follows at "

@@ -227,10 +227,12 @@ def _ascii(name: str, address: int, chars: int, description: str, **kw: object) 
 
 
 _I, _H = Table.INPUT, Table.HOLDING
-_COMMANDS_BASE, _REQUESTS_BASE, _HISTORY_STRIDE = 48, 96, 6
-_AXIS_BASE, _AXIS_STRIDE = 144, 14
+_AXIS_BASE, _AXIS_STRIDE = 48, 14
 _STATS_BASE = _AXIS_BASE + MAX_AXES * _AXIS_STRIDE
-_PROGRAM_BASE, _PROGRAM_STRIDE = _STATS_BASE + 22, 38
+_HISTORY_STRIDE = 6
+_COMMANDS_BASE = _STATS_BASE + 22
+_REQUESTS_BASE = _COMMANDS_BASE + HISTORY * _HISTORY_STRIDE
+_PROGRAM_BASE, _PROGRAM_STRIDE = _REQUESTS_BASE + HISTORY * _HISTORY_STRIDE, 38
 _LIBRARY_BASE = _PROGRAM_BASE + 2 * _PROGRAM_STRIDE
 _MESSAGE_BASE = _LIBRARY_BASE + 48
 _REQUEST_MESSAGE_BASE = _MESSAGE_BASE + MESSAGE_CHARS // 2
@@ -241,15 +243,19 @@ _KNOT_BASE = _POINT_BASE + _POINT_STRIDE * MAX_POINTS
 #: One past the staging header: holding registers 0 .. HOLDING_HEAD_END - 1 are contiguous.
 HOLDING_HEAD_END = _HEADER_BASE + 6
 
+#: One past the machine's core status: identity, machine status, axes and cycle statistics,
+#: input registers 0 .. CORE_END - 1, fit one FC4 request.
+CORE_END = _COMMANDS_BASE
+
 #: Blocks of the map in document order: (title, table, first address, end address). Every
 #: block but the staging data fits one request.
 BLOCKS: tuple[tuple[str, Table, int, int], ...] = (
     ("Identity", _I, 0, 16),
-    ("Machine status", _I, 16, _COMMANDS_BASE),
-    ("Commands judged by the machine", _I, _COMMANDS_BASE, _REQUESTS_BASE),
-    ("HMI requests", _I, _REQUESTS_BASE, _AXIS_BASE),
+    ("Machine status", _I, 16, _AXIS_BASE),
     ("Axes", _I, _AXIS_BASE, _STATS_BASE),
-    ("Cycle statistics", _I, _STATS_BASE, _PROGRAM_BASE),
+    ("Cycle statistics", _I, _STATS_BASE, _COMMANDS_BASE),
+    ("Commands judged by the machine", _I, _COMMANDS_BASE, _REQUESTS_BASE),
+    ("HMI requests", _I, _REQUESTS_BASE, _PROGRAM_BASE),
     ("Programs", _I, _PROGRAM_BASE, _LIBRARY_BASE),
     ("Program library", _I, _LIBRARY_BASE, _MESSAGE_BASE),
     ("Message", _I, _MESSAGE_BASE, _REQUEST_MESSAGE_BASE),

@@ -30,6 +30,7 @@ from runtime.hmi import HmiError
 from runtime.hmi.client import CommandRefused, HmiClient
 from runtime.hmi.registers import (
     BLOCKS,
+    CORE_END,
     FIELD,
     HOLDING_HEAD_END,
     INPUT_SIZE,
@@ -621,3 +622,16 @@ def test_requests_after_a_commit_wait_for_its_answer(fake: FakeMachine, wire: Wi
     assert wire.response() == (41, 1, struct.pack(">BHH", 16, _CODE, 2))
     assert wire.response() == (42, 1, bytes((3, 2)) + struct.pack(">H", 40))
     assert settled(wire, 40)[1] is CommandResult.DONE
+
+
+def test_the_core_status_is_one_request(fake: FakeMachine, client: HmiClient) -> None:
+    fake.publish(statusword=0x0637)
+    core = client.core_status()
+    assert CORE_END <= 125
+    assert core.snapshot.state is S.DISABLED and core.status_word & StatusBit.STATUS_VALID
+    assert [(a.name, a.node_id, a.statusword) for a in core.snapshot.axes] == [
+        ("X", 1, 0x0637),
+        ("Y", 2, 0x0637),
+        ("Z", 3, 0x0637),
+    ]
+    assert core.snapshot.stats.cycles > 0
