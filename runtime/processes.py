@@ -8,9 +8,12 @@ The supervisor (:mod:`runtime.supervisor`) starts the children with multiprocess
   decides how the machine stops (it asks the cycle to stop on the path, disable the drives and
   leave the bus, then ends the others);
 - takes its scheduling class: the cycle SCHED_FIFO at ``cycle.realtime.priority``; simulated
-  drives (standing for hardware that never waits for the host) just below it; the HMI server at
-  a low real-time priority, so it answers clients between the planner's computations; the
-  planner and the supervisor at the normal one. Threads a process starts later inherit its class.
+  drives (standing for hardware that never waits for the host) just below it; the planner at the
+  normal class but favoured (nice :data:`PLANNER_NICE`), because a planner that falls behind
+  stops the machine; the HMI server and the supervisor at the normal class. A real-time HMI
+  server was tried: ten clients reading the whole status at 20 Hz then kept the planner from the
+  CPU on two cores until the setpoints ran short. Threads a process starts later inherit its
+  class.
 
 Linux only (prctl, sched_setscheduler); where a setting is refused, one warning says so and the
 process goes on without it.
@@ -28,8 +31,8 @@ logger = logging.getLogger(__name__)
 PR_SET_PDEATHSIG = 1
 #: Simulated drives run this far below the cycle's SCHED_FIFO priority.
 SIMULATION_PRIORITY_BELOW_CYCLE = 5
-#: The HMI server's SCHED_FIFO priority (above the planner's normal class, far below the cycle).
-HMI_PRIORITY = 10
+#: Nice value of the planner process: more CPU share than the HMI server and the supervisor.
+PLANNER_NICE = -5
 
 
 def prepare_child(*, parent_pid: int) -> None:
@@ -60,6 +63,12 @@ def simulation_priority(cycle_priority: int) -> int:
     return max(0, cycle_priority - SIMULATION_PRIORITY_BELOW_CYCLE) if cycle_priority else 0
 
 
-def hmi_priority(cycle_priority: int) -> int:
-    """SCHED_FIFO priority of the HMI server (0 when the cycle has none)."""
-    return min(HMI_PRIORITY, cycle_priority - 1) if cycle_priority > 1 else 0
+def favour(nice: int, role: str) -> bool:
+    """Lower this process's nice value to ``nice`` (needs CAP_SYS_NICE below 0); whether it
+    was applied."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except OSError as exc:
+        logger.warning("%s: nice %d refused (%s); default share of the CPU", role, nice, exc)
+        return False
+    return True

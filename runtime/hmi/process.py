@@ -1,9 +1,9 @@
 """The HMI process: the Modbus TCP server, on the machine's shared memory.
 
-Started (and restarted when it dies) by the supervisor (:func:`hmi_main`). It runs at a low
-real-time priority (:mod:`runtime.processes`), so clients are answered between the planner's
-computations, and never touches the cycle: status comes from the shared snapshot, commands go to
-the HMI mailbox, curves to the program store (:class:`runtime.hmi.link.SharedMachineLink`).
+Started (and restarted when it dies) by the supervisor (:func:`hmi_main`). It runs at the normal
+scheduling class (:mod:`runtime.processes` says why) and never touches the cycle: status comes
+from the shared snapshot, commands go to the HMI mailbox, curves to the program store
+(:class:`runtime.hmi.link.SharedMachineLink`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from runtime.config import MachineConfig
 from runtime.hmi.link import SharedMachineLink
 from runtime.hmi.server import HmiServer
 from runtime.logs import queued_logging
-from runtime.processes import hmi_priority, prepare_child, realtime_priority
+from runtime.processes import prepare_child
 from runtime.programs import ProgramStore
 from runtime.shared import SharedState, shared_path
 
@@ -26,7 +26,6 @@ def hmi_main(config: MachineConfig, run_dir: str, log_level: str, parent_pid: in
     prepare_child(parent_pid=parent_pid)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
-    realtime_priority(hmi_priority(config.cycle.realtime.priority), "HMI server")
     with queued_logging(log_level):
         shared = SharedState.attach(shared_path(run_dir), tuple(axis.name for axis in config.axes))
         link = SharedMachineLink(config, shared, ProgramStore(Path(run_dir) / "programs"))

@@ -1,9 +1,9 @@
 """The planner process: plans the jobs the cycle asks for into the shared rings.
 
-Started (and restarted when it dies) by the supervisor (:func:`planner_main`). Normal
-scheduling: it computes while the cycle, the simulated drives and the HMI server, all real-time,
-take the CPU whenever they need it. It polls the cycle's requests between units of work and
-sleeps :data:`IDLE_SLEEP_S` when there is nothing to do.
+Started (and restarted when it dies) by the supervisor (:func:`planner_main`). Normal scheduling
+class, favoured over the HMI server (:mod:`runtime.processes`): it computes while the cycle and
+the simulated drives, both real-time, take the CPU whenever they need it. It polls the cycle's
+requests between units of work and sleeps :data:`IDLE_SLEEP_S` when there is nothing to do.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from runtime.config import MachineConfig
 from runtime.curves import limits_for_curve, planner_limits
 from runtime.logs import queued_logging
 from runtime.planning.service import PlannerService
-from runtime.processes import prepare_child
+from runtime.processes import PLANNER_NICE, favour, prepare_child
 from runtime.shared import SharedState, shared_path
 
 logger = logging.getLogger(__name__)
@@ -34,6 +34,7 @@ def planner_main(config: MachineConfig, run_dir: str, log_level: str, parent_pid
     prepare_child(parent_pid=parent_pid)
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(0))
     with queued_logging(log_level):
+        favour(PLANNER_NICE, "planner")
         shared = SharedState.attach(shared_path(run_dir), tuple(axis.name for axis in config.axes))
         _warm_up(config)
         service = PlannerService(shared, config)
