@@ -281,21 +281,21 @@ class NodeBoot:
 
     def begin(self, *, reset_communication: bool) -> None:
         """Start looking for the drive (after NMT reset communication when asked)."""
-        self._run(self._lifecycle(reset_communication=reset_communication, found=False))
+        self._relive(reset_communication=reset_communication, found=False)
 
     def look_again(self, reason: str) -> None:
         """The drive was lost: report ``reason`` and look for it again."""
         self._set_problem(f"{reason}; looking for the drive")
-        self._run(self._lifecycle(reset_communication=False, found=False))
+        self._relive(reset_communication=False, found=False)
 
     def rebooted(self) -> None:
         """A boot-up arrived: configure the drive again from the start."""
-        self._run(self._lifecycle(reset_communication=False, found=True))
+        self._relive(reset_communication=False, found=True)
 
     def retry(self) -> None:
         """After FAILED: look for the drive and configure it again (a fault reset)."""
         if self.phase is BootPhase.FAILED:
-            self._run(self._lifecycle(reset_communication=False, found=False))
+            self._relive(reset_communication=False, found=False)
 
     def begin_shutdown(self) -> None:
         """Write back to 0 what would supervise us after we leave, then NMT PRE-OPERATIONAL."""
@@ -334,6 +334,11 @@ class NodeBoot:
         self._sdo.cancel()
         self._task = task
         self._awaited = None
+
+    def _relive(self, *, reset_communication: bool, found: bool) -> None:
+        """(Re)start the lifecycle; the phase is WAITING from now on, not from the next step."""
+        self._run(self._lifecycle(reset_communication=reset_communication, found=found))
+        self.phase = BootPhase.WAITING
 
     def _set_problem(self, text: str) -> None:
         if text != self.problem:
@@ -390,9 +395,12 @@ class NodeBoot:
         yield from self._write(MODES_OF_OPERATION_ENTRY, MODE_CSP, required=True)
         yield from self._interpolation_period()
         if setup.sync_counter_overflow:
+            # 0x1019 may change only while 0x1006 is 0 (CiA 301).
+            yield from self._write(COMM_CYCLE_PERIOD_ENTRY, 0, required=False, quiet=True)
             yield from self._write(
                 SYNC_COUNTER_OVERFLOW_ENTRY, setup.sync_counter_overflow, required=True
             )
+            self._armed.append((SYNC_COUNTER_OVERFLOW_ENTRY, 0))
         if (yield from self._write(COMM_CYCLE_PERIOD_ENTRY, setup.period_us, required=False)):
             self._armed.append((COMM_CYCLE_PERIOD_ENTRY, 0))
         if setup.sync_window_us > 0:
@@ -512,6 +520,10 @@ class NodeBoot:
                 mapped = "; ".join(layout.describe() for layout in layouts)
                 lacked = ", ".join(describe_object(index) for index in missing)
                 raise _BootFailed(f"{mapped}: lacks {lacked}{why}")
+        for layout in (rpdo, *tpdos):
+            problem = layout_problem(layout)
+            if problem:
+                raise _BootFailed(problem + why)
         asked = [index for pdo in (spec.rpdo, *spec.tpdos) for index in pdo.objects]
         for index in missing_objects([rpdo, *tpdos], asked):
             self._skip(PROCESS_ENTRIES[index], f"not mapped{why}")
@@ -547,10 +559,9 @@ class NodeBoot:
             note = yield from self._rewrite_pdo(
                 direction, spec, raw, layout, wanted_cob_id, wanted_type, write_map
             )
-            _, layout = yield from self._read_layout(direction, spec.number)
-        problem = layout_problem(layout)
-        if problem:
-            raise _BootFailed(problem + (f" ({note})" if note else ""))
+            _, layout = yield from self._read_layout(
+                direction, spec.number, entries=None if write_map else layout.entries
+            )
         return layout, note
 
     def _rewrite_pdo(
@@ -603,24 +614,31 @@ class NodeBoot:
         return "; ".join(notes) or None
 
     def _read_layout(
-        self, direction: Direction, number: int
+        self,
+        direction: Direction,
+        number: int,
+        entries: tuple[tuple[int, int, int], ...] | None = None,
     ) -> Generator[SdoTransfer | None, SdoTransfer | None, tuple[int, PdoLayout]]:
+        """Read a PDO's communication parameters and, unless ``entries`` are known (a mapping
+        just read and not written since), its mapping."""
         raw = yield from self._read(_pdo_entry(direction, number, True, 1))
         if raw & COB_ID_EXTENDED:
             raise _BootFailed(f"{direction.name}{number} uses a 29-bit COB-ID (0x{raw:08X})")
         trans_type = yield from self._read(_pdo_entry(direction, number, True, 2))
-        count = yield from self._read(_pdo_entry(direction, number, False, 0))
-        entries = []
-        for sub in range(1, count + 1):
-            value = yield from self._read(_pdo_entry(direction, number, False, sub))
-            entries.append(decode_mapping_entry(value))
+        if entries is None:
+            count = yield from self._read(_pdo_entry(direction, number, False, 0))
+            mapped = []
+            for sub in range(1, count + 1):
+                value = yield from self._read(_pdo_entry(direction, number, False, sub))
+                mapped.append(decode_mapping_entry(value))
+            entries = tuple(mapped)
         layout = PdoLayout(
             direction,
             number,
             cob_id=raw & COB_ID_MASK,
             valid=not raw & COB_ID_INVALID,
             trans_type=trans_type,
-            entries=tuple(entries),
+            entries=entries,
         )
         return raw, layout
 

@@ -69,7 +69,7 @@ from drives.cia402 import (
     decode_statusword,
     fault_reset_controlword,
 )
-from drives.emcy import EMCY_ERROR_RESET, EMCY_STRUCT, describe_emcy
+from drives.emcy import EMCY_ERROR_RESET, EMCY_STRUCT, EMCY_SYNC_LENGTH, describe_emcy
 from drives.errors import DriveError
 from drives.guarding import HeartbeatProducer, NodeGuard
 from drives.monitor import (
@@ -265,6 +265,9 @@ class AxisFeedback:
     """Optional objects the drive does not have (or refused), by index."""
     fault: AxisFault | None
     """The latched fault: the most severe since the last fault reset."""
+    fault_reset_pending: bool
+    """A fault reset is under way (the bit 7 edge until the drive leaves FAULT); once False,
+    ``fault`` tells the outcome: None if the reset cleared it."""
 
     @property
     def enabled(self) -> bool:
@@ -715,6 +718,9 @@ class Cia402Master:
         if guard is not None:
             guard.poll(now_s)
         for code, register in axis.emcys:
+            if code == EMCY_SYNC_LENGTH and self._sync.counter_overflow and phase < BootPhase.READY:
+                # Counted SYNCs reach a drive before its 0x1019 is configured: expected then.
+                continue
             tracker.report(FaultKind.EMCY, emcy_text(code, register), now_s, code)
         axis.emcys.clear()
         if axis.toggle_errors:
@@ -750,7 +756,7 @@ class Cia402Master:
         return AxisFeedback(
             axis=axis.spec.name,
             node_id=axis.node_id,
-            phase=phase,
+            phase=boot.phase,
             state=state,
             statusword=axis.statusword,
             position_counts=position_counts,
@@ -769,6 +775,7 @@ class Cia402Master:
             error_code=axis.error_code,
             skipped_objects=boot.skipped,
             fault=tracker.fault,
+            fault_reset_pending=axis.reset_pending,
         )
 
     def _follow_state(self, axis: _Axis, state: State | None) -> None:

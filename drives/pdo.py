@@ -135,6 +135,10 @@ class PdoSpec:
             raise ValueError(f"PDO {self.number}: cob_id 0x{self.cob_id:X}, must be 0x1..0x7FF")
         if len(set(self.objects)) != len(self.objects):
             raise ValueError(f"PDO {self.number}: objects repeat an index")
+        for index in self.objects:
+            if index not in PROCESS_ENTRIES:
+                known = ", ".join(describe_object(i) for i in sorted(PROCESS_ENTRIES))
+                raise ValueError(f"PDO {self.number}: object 0x{index:04X} is not one of {known}")
         size = sum(PROCESS_ENTRIES[index].codec.size for index in self.objects)
         if size > PDO_MAX_BYTES:
             raise ValueError(
