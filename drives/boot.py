@@ -696,7 +696,8 @@ class NodeBoot:
         held = yield from self._read(entry, required=False)
         if held == value:
             return None
-        return f"{refusal}, holds {held}"
+        shown = f"0x{held:08X}" if entry.data_type == UNSIGNED32 and held is not None else held
+        return f"{refusal}, holds {shown}"
 
     def _read(
         self, entry: Entry, *, required: bool = True

@@ -112,8 +112,9 @@ class Rig:
     bus: can.BusABC
 
 
-class DriveScenarios:
-    """The scenarios; subclasses set the transport hooks and may scale the timing."""
+class DriveRigs:
+    """Master, drives and recorder on one channel; subclasses set the transport hooks and may
+    scale the timing."""
 
     NODE_IDS: Sequence[int] = (1, 2, 3)
     AXIS_NAMES: Sequence[str] = ("X", "Y", "Z")
@@ -245,7 +246,9 @@ class DriveScenarios:
     def boot_timeout(self) -> float:
         return 10.0 * self.TIMEOUT_SCALE
 
-    # -- scenarios ------------------------------------------------------------------------------
+
+class DriveScenarios(DriveRigs):
+    """The scenarios every transport runs."""
 
     def test_boot_configure_enable_stream_and_shut_down(self, channel: str) -> None:
         with self.rig(channel, realtime=False) as rig:

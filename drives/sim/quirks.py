@@ -8,7 +8,8 @@ Each switch reproduces a way real drives differ from the full object dictionary 
 - ``fixed_pdo_mapping``: the PDOs are valid from power-on in a vendor layout and every PDO
   communication and mapping object is read-only (abort 0x06010002): RPDO1 on 0x200 + node-ID =
   0x6040, 0x607A; TPDO1 on 0x280 + node-ID = 0x6064, 0x6041 (position first, on TPDO2's
-  predefined COB-ID); TPDO2 on 0x380 + node-ID = 0x60F4, 0x603F; TPDO3 (not valid) = 0x606C;
+  predefined COB-ID); TPDO2 on 0x380 + node-ID = 0x60F4, 0x603F; TPDO3 on the free 0x180 +
+  node-ID, not valid = 0x606C;
 - ``interpolation_ms_only``: 0x60C2:01 accepts 1..20 (abort 0x06090031 above, 0x06090032 below)
   and 0x60C2:02 only -3 (abort 0x06090030), as drives that interpolate in whole ms;
 - ``fault_at_power_on``: the drive powers on in FAULT with EMCY 0x8130 (a heartbeat error
@@ -58,7 +59,7 @@ FIXED_RPDOS: Final = {1: (objects.RPDO1_COB_ID_BASE, 255, objects.CSP_RPDO1)}
 FIXED_TPDOS: Final = {
     1: (0x280, 1, ((objects.POSITION_ACTUAL, 0), (objects.STATUSWORD, 0))),
     2: (0x380, 1, ((objects.FOLLOWING_ERROR_ACTUAL, 0), (objects.ERROR_CODE, 0))),
-    3: (None, 1, ((objects.VELOCITY_ACTUAL, 0),)),
+    3: (None, 1, ((objects.VELOCITY_ACTUAL, 0),)),  # on 0x180 + node-ID, not valid
 }
 
 
@@ -134,7 +135,7 @@ def _fix_pdos(
         cob_id = comm[1]
         flags = cob_id.default & objects.COB_ID_NO_RTR
         if cob_base is None:
-            cob_id.default = cob_id.default | objects.COB_ID_INVALID
+            cob_id.default = flags | objects.COB_ID_INVALID | (objects.TPDO1_COB_ID_BASE + node_id)
         else:
             cob_id.default = flags | (cob_base + node_id)
         cob_id.default_raw = None

@@ -44,6 +44,11 @@ class InProcessDrives:
 class VirtualTransport:
     """The transport hooks of the scenarios on the in-process ``virtual`` bus."""
 
+    #: The drives answer from a thread of this process, which the 2-core test machine was seen
+    #: to hold up for 8-12 ms now and then (three missed answers at 4 ms): the scenarios that
+    #: are not about stale feedback allow ten.
+    STALE_FEEDBACK_CYCLES = 10
+
     def make_channel(self) -> str:
         return f"drives-{uuid.uuid4().hex}"
 

@@ -19,7 +19,7 @@ import pytest
 from drives import emcy, objects
 from drives.cia402 import State, controlword_toward_enabled, decode_statusword
 from drives.objects import NmtState, build_drive_od
-from drives.sim import DriveModel, start_simulated_drives
+from drives.sim import DriveModel, DriveQuirks, start_simulated_drives
 
 NODE = 3
 MASTER_NODE = 0x7F
@@ -46,7 +46,7 @@ class Bench:
     def __init__(
         self,
         model: DriveModel = PATIENT,
-        boot_delay_s: float = 0.0,
+        quirks: DriveQuirks = DriveQuirks(),  # noqa: B008  (frozen)
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         channel = f"sim-drive-{uuid.uuid4().hex}"
@@ -57,7 +57,7 @@ class Bench:
         self.frames: list[can.Message] = []
         self.master.notifier.add_listener(self.frames.append)
         self.drive_set = start_simulated_drives(
-            "virtual", channel, [NODE], model=model, boot_delay_s=boot_delay_s, clock=clock
+            "virtual", channel, [NODE], model=model, quirks={NODE: quirks}, clock=clock
         )
         self.drive = self.drive_set.drives[NODE]
         self.node = self.master.add_node(NODE, build_drive_od(NODE))
@@ -166,7 +166,7 @@ def test_boot_up_message_then_pre_operational(bench):
 
 
 def test_boot_delay_holds_back_boot_up_and_sdo():
-    bench = Bench(boot_delay_s=0.3)
+    bench = Bench(quirks=DriveQuirks(boot_delay_s=0.3))
     try:
         bench.node.sdo.RESPONSE_TIMEOUT = 0.05
         with pytest.raises(canopen.SdoCommunicationError):
@@ -557,8 +557,9 @@ def _delivered_ids(bench: Bench) -> set[int]:
 
 
 def test_bus_delivers_only_what_the_drive_subscribed_to(bench):
-    # NMT, SYNC, SDO request, and the LSS response that canopen's Network subscribes itself.
-    booted = {0x000, 0x080, 0x600 + NODE, 0x7E4}
+    # NMT, SYNC, SDO request, node guarding request, and the LSS response that canopen's
+    # Network subscribes itself.
+    booted = {0x000, 0x080, 0x600 + NODE, 0x700 + NODE, 0x7E4}
     assert _delivered_ids(bench) == booted
     bench.configure_pdos()
     assert _delivered_ids(bench) == booted | {0x200 + NODE}  # RPDO1
