@@ -66,8 +66,8 @@ from drives.cia402 import (
     State,
     controlword_toward_disabled,
     controlword_toward_enabled,
-    decode_statusword,
     fault_reset_controlword,
+    state_of_statusword,
 )
 from drives.emcy import EMCY_ERROR_RESET, EMCY_STRUCT, EMCY_SYNC_LENGTH, describe_emcy
 from drives.errors import DriveError
@@ -354,6 +354,7 @@ class Cia402Master:
             settings.master_node_id, self._send, settings.master_heartbeat_ms / 1000.0
         )
         self._events: deque[AxisFault] = deque(maxlen=EVENT_QUEUE_LENGTH)
+        self._heartbeat_loss_s = settings.heartbeat_loss_periods * settings.heartbeat_ms / 1000.0
         self._dispatch: dict[int, Callable[[can.Message, float], None]] = {
             SYNC_COB_ID: self._on_sync_echo
         }
@@ -717,12 +718,13 @@ class Cia402Master:
         guard = axis.guard
         if guard is not None:
             guard.poll(now_s)
-        for code, register in axis.emcys:
-            if code == EMCY_SYNC_LENGTH and self._sync.counter_overflow and phase < BootPhase.READY:
-                # Counted SYNCs reach a drive before its 0x1019 is configured: expected then.
-                continue
-            tracker.report(FaultKind.EMCY, emcy_text(code, register), now_s, code)
-        axis.emcys.clear()
+        if axis.emcys:
+            for code, register in axis.emcys:
+                if code == EMCY_SYNC_LENGTH and self._sync.counter_overflow and phase < 3:
+                    # Counted SYNCs reach a drive before its 0x1019 is configured: expected.
+                    continue
+                tracker.report(FaultKind.EMCY, emcy_text(code, register), now_s, code)
+            axis.emcys.clear()
         if axis.toggle_errors:
             axis.toggle_errors = 0
             tracker.report(FaultKind.GUARDING, "node guarding answer out of toggle", now_s)
@@ -731,10 +733,7 @@ class Cia402Master:
         position_counts = axis.position_counts
         target_mm = following_error_mm = math.nan
         if phase in _STARTED_PHASES:
-            try:
-                state: State | None = decode_statusword(axis.statusword)
-            except ValueError:
-                state = None
+            state = state_of_statusword(axis.statusword)
             self._follow_state(axis, state)
             lagged = axis.answered_sync - axis.spec.feedback_lag_periods
             if lagged >= 1 and self._sync.sent - lagged < self._history:
@@ -747,8 +746,7 @@ class Cia402Master:
             if phase is BootPhase.READY and self._shutdown is _ShutdownStep.RUNNING:
                 self._supervise(axis, state, following_error_mm, now_s)
         else:
-            state = None
-            axis.state = None
+            state = axis.state = None
         axis.fresh = False
         if axis.reset_pending:
             self._carry_reset(axis, state)
@@ -853,8 +851,9 @@ class Cia402Master:
         else:
             last = axis.heartbeat_s
             silence_s = math.inf if last is None else now_s - last
-            settings = self.settings
-            limit_s = settings.heartbeat_loss_periods * settings.heartbeat_ms / 1000.0
+            if silence_s <= self._heartbeat_loss_s:
+                return False
+            limit_s = self._heartbeat_loss_s
             kind, what = FaultKind.HEARTBEAT_LOSS, "heartbeat"
         if silence_s <= limit_s:
             return False

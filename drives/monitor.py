@@ -106,7 +106,8 @@ class FaultTracker:
 
     def falling(self, kind: FaultKind) -> None:
         """Mark the condition ``kind`` gone; it is reported again when it comes back."""
-        self._active.discard(kind)
+        if self._active:  # the cycle's usual case, no condition present, costs a test
+            self._active.discard(kind)
 
     def report(
         self, kind: FaultKind, text: str, now_s: float, emcy_code: int | None = None
