@@ -30,26 +30,17 @@ from drives.objects import HEARTBEAT_COB_ID_BASE, NmtState
 GUARD_TOGGLE: Final[int] = 0x80
 
 
-def _next_due(due_s: float, period_s: float, now_s: float) -> float:
-    """The next due time after one sent at ``due_s``: a period on, or from now if late."""
-    due_s += period_s
-    return due_s if due_s > now_s else now_s + period_s
+class PeriodicFrame:
+    """One frame sent every ``period_s`` while running: the first at the first poll after
+    :meth:`start`, each next one a period after the last was due, once only if the poll came
+    late (no burst after a stall). A period of 0 sends nothing."""
 
-
-class HeartbeatProducer:
-    """The master's own heartbeat on 0x700 + master node-ID.
-
-    :param period_s: producer time; 0 sends nothing.
-    """
-
-    def __init__(self, node_id: int, send: Callable[[can.Message], None], period_s: float) -> None:
+    def __init__(
+        self, message: can.Message, send: Callable[[can.Message], None], period_s: float
+    ) -> None:
+        self.message = message
         self.period_s = period_s
         self._send = send
-        self._message = can.Message(
-            arbitration_id=HEARTBEAT_COB_ID_BASE + node_id,
-            is_extended_id=False,
-            data=bytearray([NmtState.OPERATIONAL]),
-        )
         self._due_s: float | None = None
         self.running = False
 
@@ -61,15 +52,27 @@ class HeartbeatProducer:
         self.running = False
 
     def poll(self, now_s: float) -> None:
-        """Send the heartbeat when it is due (the first at once)."""
+        """Send the frame when it is due."""
         if not self.running:
             return
         due_s = self._due_s
-        if due_s is None or now_s >= due_s:
-            self._send(self._message)
-            self._due_s = (
-                now_s + self.period_s if due_s is None else _next_due(due_s, self.period_s, now_s)
-            )
+        if due_s is not None and now_s < due_s:
+            return
+        self._send(self.message)
+        due_s = now_s if due_s is None else due_s + self.period_s
+        self._due_s = due_s if due_s > now_s else now_s + self.period_s
+
+
+def heartbeat_producer(
+    node_id: int, send: Callable[[can.Message], None], period_s: float
+) -> PeriodicFrame:
+    """The master's own heartbeat (OPERATIONAL) on 0x700 + ``node_id`` every ``period_s``."""
+    message = can.Message(
+        arbitration_id=HEARTBEAT_COB_ID_BASE + node_id,
+        is_extended_id=False,
+        data=bytearray([NmtState.OPERATIONAL]),
+    )
+    return PeriodicFrame(message, send, period_s)
 
 
 class NodeGuard:
@@ -94,45 +97,37 @@ class NodeGuard:
         self.node_id = node_id
         self.guard_time_s = guard_time_s
         self.life_time_s = guard_time_s * life_time_factor
-        self._send = send
-        self._request = can.Message(
+        request = can.Message(
             arbitration_id=HEARTBEAT_COB_ID_BASE + node_id,
             is_extended_id=False,
             is_remote_frame=True,
             dlc=1,
         )
-        self.running = False
-        self._due_s: float | None = None
+        self._requests = PeriodicFrame(request, send, guard_time_s)
         self._expected_toggle: int | None = None
         self.started_s = 0.0
         self.last_answer_s: float | None = None
         self.nmt_state: int | None = None
         self.toggle_errors = 0
 
+    @property
+    def running(self) -> bool:
+        return self._requests.running
+
     def start(self, now_s: float) -> None:
         """Begin guarding: the first remote frame goes out at the next poll."""
-        self.running = True
-        self._due_s = None
+        self._requests.start()
         self._expected_toggle = None
         self.started_s = now_s
         self.last_answer_s = None
         self.nmt_state = None
 
     def stop(self) -> None:
-        self.running = False
+        self._requests.stop()
 
     def poll(self, now_s: float) -> None:
         """Send the remote frame when it is due."""
-        if not self.running:
-            return
-        due_s = self._due_s
-        if due_s is None or now_s >= due_s:
-            self._send(self._request)
-            self._due_s = (
-                now_s + self.guard_time_s
-                if due_s is None
-                else _next_due(due_s, self.guard_time_s, now_s)
-            )
+        self._requests.poll(now_s)
 
     def on_answer(self, value: int, now_s: float) -> bool:
         """Take an answer byte; return False if its toggle bit did not alternate."""

@@ -71,7 +71,7 @@ from drives.cia402 import (
 )
 from drives.emcy import EMCY_ERROR_RESET, EMCY_STRUCT, EMCY_SYNC_LENGTH, describe_emcy
 from drives.errors import DriveError
-from drives.guarding import HeartbeatProducer, NodeGuard
+from drives.guarding import NodeGuard, heartbeat_producer
 from drives.monitor import (
     EVENT_QUEUE_LENGTH,
     AxisFault,
@@ -350,7 +350,7 @@ class Cia402Master:
             history=self._history,
             counter_overflow=settings.sync_counter_overflow,
         )
-        self._heartbeat = HeartbeatProducer(
+        self._heartbeat = heartbeat_producer(
             settings.master_node_id, self._send, settings.master_heartbeat_ms / 1000.0
         )
         self._events: deque[AxisFault] = deque(maxlen=EVENT_QUEUE_LENGTH)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import can
 import pytest
 
-from drives.guarding import HeartbeatProducer, NodeGuard
+from drives.guarding import NodeGuard, heartbeat_producer
 
 
 def test_guard_requests_every_guard_time_without_bursts() -> None:
@@ -33,7 +33,7 @@ def test_guard_answers_toggle_and_life_time() -> None:
 
 def test_heartbeat_producer() -> None:
     sent: list[can.Message] = []
-    producer = HeartbeatProducer(127, sent.append, period_s=0.1)
+    producer = heartbeat_producer(127, sent.append, period_s=0.1)
     producer.poll(0.0)
     assert sent == []  # not started
     producer.start()
