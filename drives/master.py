@@ -288,14 +288,16 @@ class _ShutdownStep(Enum):
 class _Axis:
     """Everything the master keeps about one axis (cycle thread only)."""
 
-    def __init__(self, spec: AxisSpec, boot: NodeBoot, sdo: SdoClient, history: int) -> None:
+    def __init__(
+        self, spec: AxisSpec, boot: NodeBoot, sdo: SdoClient, tracker: FaultTracker, history: int
+    ) -> None:
         self.spec = spec
         self.scaling = spec.scaling
         self.node_id = spec.node_id
         self.boot = boot
         self.sdo = sdo
         self.guard: NodeGuard | None = None
-        self.tracker: FaultTracker | None = None
+        self.tracker = tracker
         self.phase = BootPhase.WAITING
         self.sending = False
         self.rpdo_codec: RpdoCodec | None = None
@@ -323,7 +325,6 @@ class _Axis:
         self.sent_counts = [0] * history
         self.beyond_window = 0
         self.following_error_periods = 1
-        self.skipped: tuple[int, ...] = ()
 
 
 class Cia402Master:
@@ -365,7 +366,6 @@ class Cia402Master:
         self._shutdown = _ShutdownStep.RUNNING
         self._shutdown_deadline_s: float | None = None
         self._disable_deadline_s = 0.0
-        self._now_s = 0.0
         self._send_errors = 0
         self.feedback: tuple[AxisFeedback, ...] = ()
         """What the last :meth:`update` returned."""
@@ -409,8 +409,8 @@ class Cia402Master:
             eds_name=str(spec.eds or ""),
         )
         boot = NodeBoot(setup, sdo, functools.partial(self._send_nmt, node_id))
-        axis = _Axis(spec, boot, sdo, self._history)
-        axis.tracker = FaultTracker(spec.name, node_id, self._events)
+        tracker = FaultTracker(spec.name, node_id, self._events)
+        axis = _Axis(spec, boot, sdo, tracker, self._history)
         axis.following_error_periods = math.ceil(
             spec.following_error_timeout_ms * 1000 / self._period_us
         )
@@ -486,7 +486,6 @@ class Cia402Master:
 
     def update(self, now_s: float) -> tuple[AxisFeedback, ...]:
         """Supervise, step the boots or the shutdown, and return one record per axis."""
-        self._now_s = now_s
         if self._shutdown is not _ShutdownStep.RUNNING:
             self._step_shutdown(now_s)
         self._heartbeat.poll(now_s)
@@ -860,6 +859,7 @@ class Cia402Master:
         text = f"no {what} for {silence_s:.3f} s (limit {limit_s:.3f} s)"
         axis.tracker.report(kind, text, now_s)
         axis.boot.look_again(text)
+        axis.problem_serial = axis.boot.problem_serial  # reported just now, as the loss
         return True
 
     def _carry_reset(self, axis: _Axis, state: State | None) -> None:

@@ -455,6 +455,9 @@ class DriveScenarios(DriveRigs):
             assert detected_s <= 3 * period_s + 0.05, f"detected after {detected_s:.3f} s"
             assert f"axis Z (node {lost}): no heartbeat for" in str(feedback[2].fault)
             assert feedback[2].phase is BootPhase.WAITING  # looked for again
+            kinds = [e.kind for e in rig.loop.events]
+            assert kinds.count(FaultKind.HEARTBEAT_LOSS) == 1
+            assert set(kinds) <= {FaultKind.HEARTBEAT_LOSS, FaultKind.STALE_FEEDBACK}, kinds
             others = feedback[:2]
             assert all(f.fault is None and f.enabled for f in others), others
 
