@@ -43,6 +43,7 @@ from pathlib import Path
 import can
 import numpy as np
 
+from drives.boot import BootPhase
 from drives.bus import open_bus
 from runtime.commands import CommandCode
 from runtime.config import DEMO_CURVE_PATH, MachineConfig, RealtimeConfig, load_config
@@ -232,7 +233,7 @@ def part_one(seconds: float, period_s: float) -> None:
     report: dict = {}
     try:
         runtime.start()
-        runtime.wait_for(lambda s: all(a.boot_phase >= 4 for a in s.axes), 30.0)
+        runtime.wait_for(lambda s: all(a.boot_phase == BootPhase.READY for a in s.axes), 30.0)
         clients = context.Process(
             target=modbus_clients, args=(config.modbus.port, stop, results["clients"])
         )
@@ -338,7 +339,7 @@ def part_two(seconds: float) -> None:
         config = bench_config(f"cpu-{uuid.uuid4().hex[:8]}", seconds, axes)
         config = replace(config, modbus=replace(config.modbus, enabled=False))
         with Runtime(config, log_level="WARNING") as runtime:
-            runtime.wait_for(lambda s: all(a.boot_phase >= 4 for a in s.axes), 30.0)
+            runtime.wait_for(lambda s: all(a.boot_phase == BootPhase.READY for a in s.axes), 30.0)
             pid = runtime.process("cycle").pid
             report: dict = {}
             before_cpu, before = _cpu_s(pid), runtime.status().stats.cycles

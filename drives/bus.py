@@ -6,8 +6,9 @@ fails with errno 97, ``EAFNOSUPPORT``, on a kernel without CAN).
 
 Units: bitrate in bit/s.
 
-Threading: called from the main thread at start-up; the returned bus is then owned by one
-``canopen.Network`` (python-can >= 4.6 allows one active Notifier per bus).
+Threading: called at start-up; the returned bus then belongs to one reader: the master's cycle
+thread (``recv(timeout=0)`` each period) or, for simulated drives, a ``canopen.Network`` and its
+Notifier (python-can >= 4.6 allows one active Notifier per bus).
 
 Not done here: setting the bitrate of a SocketCAN link (that is ``ip link set ... bitrate``, root
 only) or creating vcan0; the probe only reports.
@@ -38,7 +39,8 @@ _NO_BITRATE_INTERFACES = frozenset({"virtual", "local", "socketcan", "socketcand
 
 #: Options the factory adds per interface, keyed by the configured interface name.
 _INTERFACE_OPTIONS: dict[str, dict[str, Any]] = {
-    # Our own frames must not come back to our Network (canopen would see its own RPDOs).
+    # Our own frames do not come back unless asked (receive_own_messages=True: the master then
+    # takes the echo of its SYNC for the SYNC's bus time, and ignores its other frames).
     "virtual": {"receive_own_messages": False},
     # Other sockets on the host (listeners, simulated drives) must see our frames.
     "socketcan": {"receive_own_messages": False, "local_loopback": True},

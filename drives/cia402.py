@@ -166,6 +166,24 @@ _TOWARD_DISABLED: Final[Mapping[State, Command]] = MappingProxyType(
 )
 
 
+def _state_of_bits(bits: int) -> State | None:
+    for state, (mask, value) in STATUSWORD_PATTERNS.items():
+        if bits & mask == value:
+            return state
+    return None
+
+
+#: Bits 0-3, 5 and 6 decide the state: every value of the low 7 bits, decoded once.
+_STATE_BITS: Final[int] = 0x7F
+_STATES_BY_BITS: Final = tuple(_state_of_bits(bits) for bits in range(_STATE_BITS + 1))
+
+
+def state_of_statusword(statusword: int) -> State | None:
+    """The device control state shown by a statusword (0x6041), None if it matches none of
+    the eight patterns; a table look-up, for the cycle."""
+    return _STATES_BY_BITS[statusword & _STATE_BITS]
+
+
 def decode_statusword(statusword: int) -> State:
     """Return the device control state shown by a statusword (0x6041).
 
@@ -173,12 +191,12 @@ def decode_statusword(statusword: int) -> State:
 
     :raises ValueError: if the statusword matches none of the eight state patterns.
     """
-    for state, (mask, value) in STATUSWORD_PATTERNS.items():
-        if statusword & mask == value:
-            return state
-    raise ValueError(
-        f"statusword 0x{statusword:04X}: bits 0-3, 5, 6 match no CiA 402 state pattern"
-    )
+    state = state_of_statusword(statusword)
+    if state is None:
+        raise ValueError(
+            f"statusword 0x{statusword:04X}: bits 0-3, 5, 6 match no CiA 402 state pattern"
+        )
+    return state
 
 
 def encode_statusword(

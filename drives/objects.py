@@ -16,12 +16,14 @@ Threading: constants and pure builders; safe from any thread.
 Invariants: PDO mapping objects are RECORDs (canopen's ``PdoMap.save()`` writes no entry into an
 ARRAY whose sub0 it has just cleared); node-relative defaults (COB-IDs, serial number) keep
 ``$NODEID`` in the EDS.
-Not included: store/restore (0x1010/0x1011), SYNC counter (0x1019), software position limits
-(0x607D), offsets (0x60B0-0x60B2) and every mode but CSP.
+Not included: store/restore (0x1010/0x1011), software position limits (0x607D), offsets
+(0x60B0-0x60B2) and every mode but CSP.
 """
 
 from __future__ import annotations
 
+import struct
+from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
 from typing import Final
@@ -46,10 +48,13 @@ PREDEFINED_ERROR_FIELD: Final[int] = 0x1003
 COB_ID_SYNC: Final[int] = 0x1005
 COMM_CYCLE_PERIOD: Final[int] = 0x1006
 SYNC_WINDOW: Final[int] = 0x1007
+GUARD_TIME: Final[int] = 0x100C
+LIFE_TIME_FACTOR: Final[int] = 0x100D
 COB_ID_EMCY: Final[int] = 0x1014
 CONSUMER_HEARTBEAT: Final[int] = 0x1016
 PRODUCER_HEARTBEAT: Final[int] = 0x1017
 IDENTITY: Final[int] = 0x1018
+SYNC_COUNTER_OVERFLOW: Final[int] = 0x1019
 RPDO_COMM: Final[int] = 0x1400  # + n - 1 for RPDO n
 RPDO_MAP: Final[int] = 0x1600
 TPDO_COMM: Final[int] = 0x1800
@@ -142,6 +147,105 @@ class NmtCommand(IntEnum):
     ENTER_PRE_OPERATIONAL = 0x80
     RESET_NODE = 0x81
     RESET_COMMUNICATION = 0x82
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One object dictionary entry as the master addresses it: index, sub-index, name, CiA type.
+
+    ``str(entry)`` is how messages name it: ``0x6066:00 following error timeout``.
+    """
+
+    index: int
+    subindex: int
+    name: str
+    data_type: int
+
+    @property
+    def codec(self) -> struct.Struct:
+        """Little-endian codec of the entry's data type."""
+        return ODVariable.STRUCT_TYPES[self.data_type]
+
+    @property
+    def bits(self) -> int:
+        """Length as PDO mapping entries give it."""
+        return self.codec.size * 8
+
+    def __str__(self) -> str:
+        return f"0x{self.index:04X}:{self.subindex:02X} {self.name}"
+
+
+# Entries the master reads or writes (CiA 301 / CiA 402 data types).
+DEVICE_TYPE_ENTRY: Final = Entry(DEVICE_TYPE, 0, "device type", UNSIGNED32)
+COMM_CYCLE_PERIOD_ENTRY: Final = Entry(
+    COMM_CYCLE_PERIOD, 0, "communication cycle period", UNSIGNED32
+)
+SYNC_WINDOW_ENTRY: Final = Entry(SYNC_WINDOW, 0, "synchronous window length", UNSIGNED32)
+GUARD_TIME_ENTRY: Final = Entry(GUARD_TIME, 0, "guard time", UNSIGNED16)
+LIFE_TIME_FACTOR_ENTRY: Final = Entry(LIFE_TIME_FACTOR, 0, "life time factor", UNSIGNED8)
+CONSUMER_HEARTBEAT_ENTRY: Final = Entry(
+    CONSUMER_HEARTBEAT, 1, "consumer heartbeat time", UNSIGNED32
+)
+PRODUCER_HEARTBEAT_ENTRY: Final = Entry(
+    PRODUCER_HEARTBEAT, 0, "producer heartbeat time", UNSIGNED16
+)
+SYNC_COUNTER_OVERFLOW_ENTRY: Final = Entry(
+    SYNC_COUNTER_OVERFLOW, 0, "synchronous counter overflow value", UNSIGNED8
+)
+ABORT_CONNECTION_ENTRY: Final = Entry(
+    ABORT_CONNECTION_OPTION, 0, "abort connection option code", INTEGER16
+)
+ERROR_CODE_ENTRY: Final = Entry(ERROR_CODE, 0, "error code", UNSIGNED16)
+CONTROLWORD_ENTRY: Final = Entry(CONTROLWORD, 0, "controlword", UNSIGNED16)
+STATUSWORD_ENTRY: Final = Entry(STATUSWORD, 0, "statusword", UNSIGNED16)
+QUICK_STOP_OPTION_ENTRY: Final = Entry(QUICK_STOP_OPTION, 0, "quick stop option code", INTEGER16)
+FAULT_REACTION_OPTION_ENTRY: Final = Entry(
+    FAULT_REACTION_OPTION, 0, "fault reaction option code", INTEGER16
+)
+MODES_OF_OPERATION_ENTRY: Final = Entry(MODES_OF_OPERATION, 0, "modes of operation", INTEGER8)
+MODES_OF_OPERATION_DISPLAY_ENTRY: Final = Entry(
+    MODES_OF_OPERATION_DISPLAY, 0, "modes of operation display", INTEGER8
+)
+POSITION_ACTUAL_ENTRY: Final = Entry(POSITION_ACTUAL, 0, "position actual value", INTEGER32)
+FOLLOWING_ERROR_WINDOW_ENTRY: Final = Entry(
+    FOLLOWING_ERROR_WINDOW, 0, "following error window", UNSIGNED32
+)
+FOLLOWING_ERROR_TIMEOUT_ENTRY: Final = Entry(
+    FOLLOWING_ERROR_TIMEOUT, 0, "following error timeout", UNSIGNED16
+)
+TARGET_POSITION_ENTRY: Final = Entry(TARGET_POSITION, 0, "target position", INTEGER32)
+INTERPOLATION_PERIOD_VALUE_ENTRY: Final = Entry(
+    INTERPOLATION_PERIOD, INTERPOLATION_PERIOD_VALUE, "interpolation time period value", UNSIGNED8
+)
+INTERPOLATION_PERIOD_INDEX_ENTRY: Final = Entry(
+    INTERPOLATION_PERIOD, INTERPOLATION_PERIOD_INDEX, "interpolation time index", INTEGER8
+)
+FOLLOWING_ERROR_ACTUAL_ENTRY: Final = Entry(
+    FOLLOWING_ERROR_ACTUAL, 0, "following error actual value", INTEGER32
+)
+VELOCITY_ACTUAL_ENTRY: Final = Entry(VELOCITY_ACTUAL, 0, "velocity actual value", INTEGER32)
+
+#: The process data objects the master knows by name, keyed by index (sub-index 0).
+PROCESS_ENTRIES: Final = {
+    entry.index: entry
+    for entry in (
+        CONTROLWORD_ENTRY,
+        TARGET_POSITION_ENTRY,
+        MODES_OF_OPERATION_ENTRY,
+        STATUSWORD_ENTRY,
+        POSITION_ACTUAL_ENTRY,
+        FOLLOWING_ERROR_ACTUAL_ENTRY,
+        ERROR_CODE_ENTRY,
+        MODES_OF_OPERATION_DISPLAY_ENTRY,
+        VELOCITY_ACTUAL_ENTRY,
+    )
+}
+
+
+def describe_object(index: int) -> str:
+    """``0x6064 position actual value`` for a known process object, else ``0x2100``."""
+    entry = PROCESS_ENTRIES.get(index)
+    return f"0x{index:04X}" if entry is None else f"0x{index:04X} {entry.name}"
 
 
 def rpdo_cob_id(pdo_number: int, node_id: int) -> int:
@@ -311,7 +415,10 @@ def _add_communication_objects(od: canopen.ObjectDictionary, node_id: int) -> No
         ("COB-ID SYNC message", COB_ID_SYNC, UNSIGNED32, "rw", SYNC_COB_ID, False),
         ("Communication cycle period", COMM_CYCLE_PERIOD, UNSIGNED32, "rw", 0, False),
         ("Synchronous window length", SYNC_WINDOW, UNSIGNED32, "rw", 0, False),
+        ("Guard time", GUARD_TIME, UNSIGNED16, "rw", 0, False),
+        ("Life time factor", LIFE_TIME_FACTOR, UNSIGNED8, "rw", 0, False),
         ("Producer heartbeat time", PRODUCER_HEARTBEAT, UNSIGNED16, "rw", 0, False),
+        ("Synchronous counter overflow value", SYNC_COUNTER_OVERFLOW, UNSIGNED8, "rw", 0, False),
     ):
         od.add_object(
             _variable(

@@ -14,12 +14,16 @@ from __future__ import annotations
 import ipaddress
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
 
+from drives.boot import Supervision
+from drives.objects import PROCESS_ENTRIES, describe_object
+from drives.pdo import RPDO_REQUIRED, AxisPdoSpec, MappingPolicy, PdoSpec
+from drives.sim.quirks import DriveQuirks
 from runtime.errors import ConfigError
 
 #: The shipped configurations (``sim.yaml``, ``vcan.yaml``, ``ipc-example.yaml``, ``curves/``,
@@ -36,6 +40,16 @@ GC_MODES = ("freeze", "disable", "normal")
 FAULT_REACTIONS = ("stop", "quick_stop")
 WATCHDOG_ACTIONS = ("hold", "stop")
 AXIS_MODES = ("csp",)
+SUPERVISIONS = tuple(kind.value for kind in Supervision)
+MAPPING_POLICIES = tuple(policy.value for policy in MappingPolicy)
+#: Boolean switches of a simulated drive's quirks (drives.sim.quirks.DriveQuirks).
+QUIRK_FLAGS = (
+    "no_optional_objects",
+    "fixed_pdo_mapping",
+    "interpolation_ms_only",
+    "fault_at_power_on",
+    "guarding_only",
+)
 
 
 @dataclass(frozen=True)
@@ -104,9 +118,20 @@ class CanConfig:
     sync_window_us: int = 0
     """Synchronous window length (0x1007); 0 = not used."""
     boot_timeout_s: float = 5.0
-    sdo_timeout_s: float = 0.3
+    """A drive silent this long at start is reported (and still looked for)."""
+    sdo_timeout_s: float = 1.0
+    """Time allowed for each SDO answer (slow drives take hundreds of ms)."""
+    sdo_retries: int = 2
+    """A transfer that timed out is tried this many times more."""
     stale_feedback_cycles: int = 3
     """An axis whose TPDO is older than this many cycles is faulted."""
+    sync_counter_overflow: int = 0
+    """0: SYNC without data, feedback matched by timestamp; 2..240: counted SYNC (0x1019 on
+    every drive), feedback matched by the order of our SYNC's echo."""
+    reset_communication: bool = True
+    """NMT reset communication at start, so drives that booted earlier boot again."""
+    shutdown_timeout_s: float = 3.0
+    """The whole clean shutdown (disable, disarm the drives' supervision of us, PRE-OP)."""
 
 
 @dataclass(frozen=True)
@@ -125,6 +150,13 @@ class AxisConfig:
     vmax_mm_s: float | None = None
     amax_mm_s2: float | None = None
     eds: Path | None = None
+    supervision: Supervision = Supervision.HEARTBEAT
+    """heartbeat (falls back to node guarding on a drive without 0x1017) or guarding."""
+    guard_time_ms: int = 100
+    life_time_factor: int = 3
+    feedback_lag_periods: int = 1
+    """SYNCs between a target and the TPDO reporting the position reached for it."""
+    pdo: AxisPdoSpec = field(default_factory=AxisPdoSpec)
 
 
 @dataclass(frozen=True)
@@ -132,6 +164,8 @@ class SimulationConfig:
     """Simulated CiA-402 drives on the configured bus, in this process."""
 
     drives: bool = False
+    quirks: Mapping[str, DriveQuirks] = field(default_factory=dict)
+    """Per axis name: how its simulated drive behaves like other vendors' drives."""
 
 
 @dataclass(frozen=True)
@@ -392,12 +426,57 @@ def _parse_can(s: _Section) -> CanConfig:
         sync_window_us=s.integer("sync_window_us", d.sync_window_us, minimum=0),
         boot_timeout_s=s.number("boot_timeout_s", d.boot_timeout_s, positive=True),
         sdo_timeout_s=s.number("sdo_timeout_s", d.sdo_timeout_s, positive=True),
+        sdo_retries=s.integer("sdo_retries", d.sdo_retries, minimum=0, maximum=10),
         stale_feedback_cycles=s.integer(
             "stale_feedback_cycles", d.stale_feedback_cycles, minimum=1, maximum=1000
         ),
+        sync_counter_overflow=s.integer(
+            "sync_counter_overflow", d.sync_counter_overflow, minimum=0, maximum=240
+        ),
+        reset_communication=s.boolean("reset_communication", d.reset_communication),
+        shutdown_timeout_s=s.number("shutdown_timeout_s", d.shutdown_timeout_s, positive=True),
     )
     s.finish()
+    if config.sync_counter_overflow == 1:
+        raise ConfigError(s.key_path("sync_counter_overflow"), 1, "0 or a value in 2..240")
     return config
+
+
+def _parse_pdo_objects(s: _Section, default: tuple[int, ...] | None) -> tuple[int, ...]:
+    value = s.raw("objects", None if default is None else list(default))
+    path = s.key_path("objects")
+    if not isinstance(value, list) or not value:
+        raise ConfigError(path, value, "a non-empty list of object indices such as 0x6041")
+    known = ", ".join(describe_object(index) for index in sorted(PROCESS_ENTRIES))
+    for i, index in enumerate(value):
+        if isinstance(index, bool) or index not in PROCESS_ENTRIES:
+            raise ConfigError(f"{path}[{i}]", index, f"one of {known}")
+    return tuple(value)
+
+
+def _parse_pdo_spec(s: _Section, default: PdoSpec | None) -> PdoSpec:
+    number = s.integer(
+        "number", None if default is None else default.number, minimum=1, maximum=512
+    )
+    cob_id = s.integer("cob_id", None, minimum=1, maximum=0x7FF, optional=True)
+    objects = _parse_pdo_objects(s, None if default is None else default.objects)
+    s.finish()
+    try:
+        return PdoSpec(number, objects, cob_id)
+    except ValueError as exc:
+        raise ConfigError(s.key_path("objects"), list(objects), str(exc)) from None
+
+
+def _parse_pdo(s: _Section) -> AxisPdoSpec:
+    d = AxisPdoSpec()
+    mapping = s.string("mapping", d.mapping.value, choices=MAPPING_POLICIES)
+    rpdo = _parse_pdo_spec(s.section("rpdo"), PdoSpec(1, RPDO_REQUIRED))
+    tpdos = s.items("tpdo", lambda item: _parse_pdo_spec(item, None), required=False)
+    s.finish()
+    try:
+        return AxisPdoSpec(MappingPolicy(mapping), rpdo, tuple(tpdos) or d.tpdos)
+    except ValueError as exc:
+        raise ConfigError(s.path, s.data, str(exc)) from None
 
 
 def _parse_axis(s: _Section) -> AxisConfig:
@@ -438,6 +517,11 @@ def _parse_axis(s: _Section) -> AxisConfig:
         vmax_mm_s=s.number("vmax_mm_s", None, positive=True, optional=True),
         amax_mm_s2=s.number("amax_mm_s2", None, positive=True, optional=True),
         eds=Path(eds) if eds is not None else None,
+        supervision=Supervision(s.string("supervision", "heartbeat", choices=SUPERVISIONS)),
+        guard_time_ms=s.integer("guard_time_ms", 100, minimum=1, maximum=65535),
+        life_time_factor=s.integer("life_time_factor", 3, minimum=1, maximum=255),
+        feedback_lag_periods=s.integer("feedback_lag_periods", 1, minimum=0, maximum=100),
+        pdo=_parse_pdo(s.section("pdo")),
     )
     s.finish()
     return config
@@ -498,8 +582,36 @@ def _parse_programs(s: _Section, base: Path | None) -> ProgramsConfig:
     return ProgramsConfig(library_dir=directory)
 
 
+def _parse_quirks(s: _Section) -> DriveQuirks:
+    flags = {flag: s.boolean(flag, False) for flag in QUIRK_FLAGS}
+    delay = s.raw("sdo_delay_ms", [0, 0])
+    ok = (
+        isinstance(delay, list)
+        and len(delay) == 2
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in delay)
+        and all(math.isfinite(v) and v >= 0 for v in delay)
+        and delay[0] <= delay[1]
+    )
+    if not ok:
+        raise ConfigError(s.key_path("sdo_delay_ms"), delay, "[shortest, longest] in ms, >= 0")
+    quirks = DriveQuirks(
+        **flags,
+        sdo_delay_s=(delay[0] / 1000.0, delay[1] / 1000.0),
+        boot_delay_s=s.number("boot_delay_s", 0.0, minimum=0),
+        late_tpdo_periods=s.integer("late_tpdo_periods", 0, minimum=0, maximum=100),
+    )
+    s.finish()
+    return quirks
+
+
 def _parse_simulation(s: _Section) -> SimulationConfig:
-    config = SimulationConfig(drives=s.boolean("drives", False))
+    drives = s.boolean("drives", False)
+    section = s.section("quirks")
+    quirks = {
+        str(name): _parse_quirks(_Section(section.raw(name, None), section.key_path(str(name))))
+        for name in list(section.data)
+    }
+    config = SimulationConfig(drives=drives, quirks=quirks)
     s.finish()
     return config
 
@@ -537,6 +649,15 @@ def _check_axes(axes: list[AxisConfig], can: CanConfig) -> None:
         raise ConfigError("axes", len(axes), "at most 3 axes (x, y, z of the path)")
 
 
+def _check_simulation(simulation: SimulationConfig, axes: list[AxisConfig]) -> None:
+    names = [axis.name for axis in axes]
+    for name in simulation.quirks:
+        if name not in names:
+            raise ConfigError(
+                f"simulation.quirks.{name}", name, f"the name of an axis ({', '.join(names)})"
+            )
+
+
 def parse_config(data: Any, source: Path | None = None) -> MachineConfig:
     """Validate a parsed YAML document into a :class:`MachineConfig`.
 
@@ -553,6 +674,7 @@ def parse_config(data: Any, source: Path | None = None) -> MachineConfig:
     programs = _parse_programs(root.section("programs"), source.parent if source else None)
     root.finish()
     _check_axes(axes, can)
+    _check_simulation(simulation, axes)
     if source is not None:
         axes = [_resolve_eds(axis, source.parent) for axis in axes]
     return MachineConfig(

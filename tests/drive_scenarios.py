@@ -1,36 +1,44 @@
-"""Integration scenarios of the CiA 402 master against simulated drives, independent of transport.
+"""Scenarios of the CiA 402 master against simulated drives, independent of the transport.
 
 :class:`DriveScenarios` holds the scenarios; a subclass provides the transport (how a bus is
-opened) and the drives (how they are launched, silenced and faulted), as python-can's back-to-back
-tests do: ``tests/drives/test_integration_virtual.py`` runs them on the in-process ``virtual``
-bus, ``tests/vcan/test_drives_vcan.py`` on SocketCAN vcan0 with one process per drive.
+opened) and the drives (how they are launched with their quirks, silenced and faulted), as
+python-can's back-to-back tests do: ``tests/drives/test_integration_virtual.py`` runs them on the
+in-process ``virtual`` bus, ``tests/vcan/test_drives_vcan.py`` on SocketCAN vcan0 with one
+process per drive.
 
-The cycle is driven by the test. Motion runs faster than real time: after each exchange the loop
-waits until every drive has answered that SYNC (the simulated drives step their model once per
-SYNC with the period of 0x1006, so simulated time is exact). Heartbeat loss is wall-clock, so
-that scenario runs the cycle at its real period. An independent listener bus records every frame
-with the number of SYNCs sent when it arrived, to check what the drives actually received.
+The master is stepped by :class:`drive_loop.CycleLoop` the way the cycle process steps it. An
+independent listener bus records every frame, to check what the drives actually received.
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import struct
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Protocol
 
 import can
-import canopen
 import pytest
+from drive_loop import CycleLoop
 
 from drives.cia402 import State
-from drives.errors import BootTimeout
-from drives.master import AxisFeedback, AxisSpec, Cia402Master, FaultKind, MasterSettings
+from drives.master import (
+    AxisFeedback,
+    AxisSpec,
+    BootPhase,
+    Cia402Master,
+    FaultKind,
+    MasterSettings,
+)
 from drives.scaling import AxisScaling
+from drives.sim import DriveQuirks
+from drives.sim.quirks import OPTIONAL_OBJECTS
 
 RPDO1 = struct.Struct("<Hi")
 
@@ -45,33 +53,50 @@ class DriveLauncher(Protocol):
     def close(self) -> None: ...
 
 
-@dataclass(frozen=True)
-class Recorded:
-    frame: can.Message
-    syncs_sent: int
-
-
 class FrameRecorder(can.Listener):
-    """Listener bus records: every frame with the master's SYNC count at its arrival."""
+    """Listener bus: every frame, in arrival order."""
 
     def __init__(self, bus: can.BusABC) -> None:
         self.bus = bus
-        self.frames: list[Recorded] = []
-        self.master: Cia402Master | None = None
+        self.frames: list[can.Message] = []
         self._lock = threading.Lock()
         self._notifier = can.Notifier(bus, [self], timeout=0.05)
 
     def on_message_received(self, msg: can.Message) -> None:
-        syncs = self.master.syncs_sent if self.master is not None else 0
         with self._lock:
-            self.frames.append(Recorded(msg, syncs))
+            self.frames.append(msg)
 
-    def snapshot(self) -> list[Recorded]:
+    def snapshot(self) -> list[can.Message]:
         with self._lock:
             return list(self.frames)
 
+    def with_id(self, can_id: int) -> list[can.Message]:
+        return [m for m in self.snapshot() if m.arbitration_id == can_id]
+
     def ids(self) -> set[int]:
-        return {r.frame.arbitration_id for r in self.snapshot()}
+        return {m.arbitration_id for m in self.snapshot()}
+
+    def sdo_downloads(self, node_id: int) -> list[tuple[int, int, bytes]]:
+        """(index, subindex, data) of every expedited SDO download to ``node_id``."""
+        writes = []
+        for message in self.with_id(0x600 + node_id):
+            data = bytes(message.data)
+            if data[0] & 0xE3 == 0x23:  # initiate download, expedited, size indicated
+                size = 4 - (data[0] >> 2 & 0x03)
+                index, subindex = struct.unpack_from("<HB", data, 1)
+                writes.append((index, subindex, data[4 : 4 + size]))
+        return writes
+
+    def sdo_uploads(self, node_id: int) -> list[tuple[int, int]]:
+        """(index, subindex) of every SDO upload request to ``node_id``."""
+        return [
+            struct.unpack_from("<HB", bytes(m.data), 1)
+            for m in self.with_id(0x600 + node_id)
+            if m.data[0] == 0x40
+        ]
+
+    def emcy_codes(self, node_id: int) -> list[int]:
+        return [struct.unpack_from("<H", bytes(m.data))[0] for m in self.with_id(0x80 + node_id)]
 
     def close(self) -> None:
         self._notifier.stop()
@@ -81,40 +106,42 @@ class FrameRecorder(can.Listener):
 @dataclass
 class Rig:
     master: Cia402Master
-    network: canopen.Network
+    loop: CycleLoop
     recorder: FrameRecorder
-    launcher: DriveLauncher | None
+    launcher: DriveLauncher
+    bus: can.BusABC
 
 
-class DriveScenarios:
-    """The scenarios; subclasses set the transport hooks and may scale the timing."""
+class DriveRigs:
+    """Master, drives and recorder on one channel; subclasses set the transport hooks and may
+    scale the timing."""
 
     NODE_IDS: Sequence[int] = (1, 2, 3)
     AXIS_NAMES: Sequence[str] = ("X", "Y", "Z")
     PERIOD_S = 0.004
-    #: TPDO age (cycles) before stale feedback is a fault.
-    STALE_FEEDBACK_CYCLES = 3
     HEARTBEAT_MS = 100
     #: Multiplies every wait on wall-clock events that the transport can delay.
     TIMEOUT_SCALE = 1.0
+    STALE_FEEDBACK_CYCLES = 3
     COUNTS_PER_MM = 1000.0
     WINDOW_MM = 1.0
     VMAX_MM_S = 100.0
-    AMAX_MM_S2 = 1000.0
-    MOTION_S = 10.0
+    MOTION_S = 4.0
 
     # -- transport hooks ------------------------------------------------------------------------
 
     def make_channel(self) -> str:
         raise NotImplementedError
 
-    def open_bus(self, channel: str) -> can.BusABC:
+    def open_bus(self, channel: str, **options: object) -> can.BusABC:
         raise NotImplementedError
 
-    def launch_drives(self, channel: str, node_ids: Sequence[int]) -> DriveLauncher:
+    def launch_drives(
+        self, channel: str, node_ids: Sequence[int], quirks: Mapping[int, DriveQuirks]
+    ) -> DriveLauncher:
         raise NotImplementedError
 
-    # -- fixtures -------------------------------------------------------------------------------
+    # -- rig ------------------------------------------------------------------------------------
 
     def settings(self, **overrides: object) -> MasterSettings:
         values: dict[str, object] = {
@@ -122,20 +149,23 @@ class DriveScenarios:
             "heartbeat_ms": self.HEARTBEAT_MS,
             "master_heartbeat_ms": self.HEARTBEAT_MS,
             "boot_timeout_s": 5.0 * self.TIMEOUT_SCALE,
-            "sdo_timeout_s": 0.3 * self.TIMEOUT_SCALE,
             "stale_feedback_cycles": self.STALE_FEEDBACK_CYCLES,
         }
         values.update(overrides)
         return MasterSettings(**values)  # type: ignore[arg-type]
 
-    def axes(self) -> list[AxisSpec]:
+    def axes(self, **overrides: object) -> list[AxisSpec]:
+        values: dict[str, object] = {
+            "following_error_window_mm": self.WINDOW_MM,
+            "following_error_timeout_ms": 20,
+        }
+        values.update(overrides)
         return [
             AxisSpec(
                 name,
                 node_id,
                 AxisScaling(self.COUNTS_PER_MM, travel_min_mm=-500.0, travel_max_mm=500.0),
-                following_error_window_mm=self.WINDOW_MM,
-                following_error_timeout_ms=20,
+                **values,  # type: ignore[arg-type]
             )
             for name, node_id in zip(self.AXIS_NAMES, self.NODE_IDS, strict=True)
         ]
@@ -144,68 +174,36 @@ class DriveScenarios:
     def channel(self) -> str:
         return self.make_channel()
 
-    def _rig(self, channel: str, drive_ids: Sequence[int], **overrides: object) -> Iterator[Rig]:
+    @contextmanager
+    def rig(
+        self,
+        channel: str,
+        *,
+        quirks: Mapping[int, DriveQuirks] | None = None,
+        drive_ids: Sequence[int] | None = None,
+        settings: MasterSettings | None = None,
+        axes: Sequence[AxisSpec] | None = None,
+        realtime: bool = True,
+        bus_options: Mapping[str, object] | None = None,
+    ) -> Iterator[Rig]:
+        """Recorder, master bus, drives (powered on with the master's bus already open, so
+        nothing they send is missed), master and loop; closed in reverse on exit."""
         recorder = FrameRecorder(self.open_bus(channel))
-        network = canopen.Network(self.open_bus(channel))
-        # Short notifier cycles, and a join on disconnect: a notifier still reading when its
-        # socketcan bus closes fails with EBADF (seen in the slow VM).
-        network.NOTIFIER_CYCLE = 0.05
-        network.NOTIFIER_SHUTDOWN_TIMEOUT = 0.5
-        network.connect()
-        master = Cia402Master(network, self.axes(), self.settings(**overrides))
-        recorder.master = master
+        bus = self.open_bus(channel, **(bus_options or {}))
         launcher = None
         try:
-            launcher = self.launch_drives(channel, drive_ids) if drive_ids else None
-            self.wait_for_boot_up(recorder, drive_ids)
-            yield Rig(master, network, recorder, launcher)
-            master.shutdown()
+            node_ids = self.NODE_IDS if drive_ids is None else drive_ids
+            launcher = self.launch_drives(channel, node_ids, quirks or {})
+            master = Cia402Master(bus, axes or self.axes(), settings or self.settings())
+            loop = CycleLoop(master, self.PERIOD_S, realtime=realtime)
+            yield Rig(master, loop, recorder, launcher, bus)
         finally:
             if launcher is not None:
                 launcher.close()
-            network.disconnect()
+            bus.shutdown()
             recorder.close()
 
-    def wait_for_boot_up(self, recorder: FrameRecorder, node_ids: Sequence[int]) -> None:
-        """Wait until every launched drive has sent its boot-up (a process takes a while)."""
-        expected = {0x700 + node_id for node_id in node_ids}
-        deadline = time.monotonic() + 30.0 * self.TIMEOUT_SCALE
-        while not expected <= recorder.ids():
-            assert time.monotonic() < deadline, f"drives {list(node_ids)} never booted"
-            time.sleep(0.01)
-
-    @pytest.fixture
-    def rig(self, channel: str) -> Iterator[Rig]:
-        yield from self._rig(channel, self.NODE_IDS)
-
-    # -- cycle helpers --------------------------------------------------------------------------
-
-    def fast_cycle(
-        self, master: Cia402Master, targets: Sequence[float | None] | None = None
-    ) -> tuple[AxisFeedback, ...]:
-        """One cycle, then wait until every drive answered its SYNC (faster than real time)."""
-        feedback = master.read_feedback()
-        master.write_targets(targets)
-        master.exchange()
-        deadline = time.monotonic() + 1.0 * self.TIMEOUT_SCALE
-        while not master.feedback_complete:
-            if time.monotonic() > deadline:
-                break  # the next read_feedback reports the stale axis
-            time.sleep(0.0001)
-        return feedback
-
-    def enable_all(self, master: Cia402Master) -> None:
-        master.request_enable()
-        for _ in range(20):
-            feedback = self.fast_cycle(master)
-            if all(f.enabled for f in feedback):
-                return
-        pytest.fail(f"not enabled after 20 cycles: {master.read_feedback()}")
-
-    def booted(self, rig: Rig) -> Cia402Master:
-        rig.master.boot()
-        self.enable_all(rig.master)
-        return rig.master
+    # -- helpers --------------------------------------------------------------------------------
 
     def motion(self, k: int, start_mm: Sequence[float]) -> list[float]:
         """Smooth per-axis motion p0 + A (1 - cos 2πft): v = A 2πf, a = A (2πf)² within limits."""
@@ -216,14 +214,26 @@ class DriveScenarios:
             for p0, (a, f) in zip(start_mm, shapes, strict=False)
         ]
 
+    def stream(self, rig: Rig, periods: int) -> list[float]:
+        """Move every axis along :meth:`motion` from where it stands; return the largest
+        |following error| per axis, checking no fault appears."""
+        start = [f.position_mm for f in rig.loop.feedback]
+        worst = [0.0] * len(start)
+        for k in range(1, periods + 1):
+            feedback = rig.loop.step(self.motion(k, start))
+            for i, item in enumerate(feedback):
+                assert item.fault is None, str(item.fault)
+                assert item.enabled, item
+                if not math.isnan(item.following_error_mm):
+                    worst[i] = max(worst[i], abs(item.following_error_mm))
+        return worst
+
     def rpdo_targets(self, recorder: FrameRecorder, node_id: int) -> list[tuple[int, int]]:
         """(controlword, target counts) of every RPDO1 of ``node_id`` seen on the bus."""
         values = []
-        for record in recorder.snapshot():
-            frame = record.frame
-            if frame.arbitration_id == 0x200 + node_id:
-                assert frame.dlc == 6, f"RPDO1 of node {node_id}: dlc {frame.dlc}"
-                values.append(RPDO1.unpack(bytes(frame.data)))
+        for frame in recorder.with_id(0x200 + node_id):
+            assert frame.dlc == 6, f"RPDO1 of node {node_id}: dlc {frame.dlc}"
+            values.append(RPDO1.unpack(bytes(frame.data)))
         return values
 
     def assert_no_target_jump(self, recorder: FrameRecorder, node_id: int) -> None:
@@ -231,165 +241,286 @@ class DriveScenarios:
         targets = [target for _, target in self.rpdo_targets(recorder, node_id)]
         assert targets, f"no RPDO1 of node {node_id} on the bus"
         steps = [abs(b - a) for a, b in itertools.pairwise(targets)]
-        assert max(steps, default=0) <= limit, (
-            f"node {node_id}: target step {max(steps)} counts > vmax·T = {limit}"
-        )
+        assert max(steps, default=0) <= limit, f"node {node_id}: target step {max(steps)} > {limit}"
 
-    # -- scenarios ------------------------------------------------------------------------------
+    def boot_timeout(self) -> float:
+        return 10.0 * self.TIMEOUT_SCALE
 
-    def test_boot_configure_enable_and_stream_motion(self, rig: Rig) -> None:
-        master = self.booted(rig)
-        start = [f.commanded_mm for f in master.read_feedback()]
-        cycles = round(self.MOTION_S / self.PERIOD_S)
-        worst = [0.0] * len(start)
-        for k in range(cycles):
-            feedback = self.fast_cycle(master, self.motion(k + 1, start))
-            for i, item in enumerate(feedback):
-                assert item.fault is None, str(item.fault)
-                assert item.enabled
-                worst[i] = max(worst[i], abs(item.following_error_mm))
-        assert max(worst) <= self.WINDOW_MM, worst
-        final = master.read_feedback()
-        expected = self.motion(cycles, start)
-        for item, end_mm in zip(final, expected, strict=True):
-            assert item.commanded_mm == pytest.approx(end_mm, abs=1e-3)
-            assert item.feedback_age_cycles == 0
-        for node_id in self.NODE_IDS:
-            self.assert_no_target_jump(rig.recorder, node_id)
-            controlwords = {cw for cw, _ in self.rpdo_targets(rig.recorder, node_id)}
-            assert controlwords == {0x06, 0x07, 0x0F}
-        syncs = [r for r in rig.recorder.snapshot() if r.frame.arbitration_id == 0x080]
-        assert len(syncs) == master.syncs_sent
-        assert all(r.frame.dlc == 0 for r in syncs)
 
-    def test_boot_timeout_names_the_silent_node(self, channel: str) -> None:
+class DriveScenarios(DriveRigs):
+    """The scenarios every transport runs."""
+
+    def test_boot_configure_enable_stream_and_shut_down(self, channel: str) -> None:
+        with self.rig(channel, realtime=False) as rig:
+            rig.loop.boot(self.boot_timeout())
+            rig.loop.enable()
+            worst = self.stream(rig, round(self.MOTION_S / self.PERIOD_S))
+            assert max(worst) <= self.WINDOW_MM / 4, worst
+            rig.loop.shutdown(self.boot_timeout())
+            for node_id in self.NODE_IDS:
+                self.assert_no_target_jump(rig.recorder, node_id)
+                controlwords = {cw for cw, _ in self.rpdo_targets(rig.recorder, node_id)}
+                assert controlwords >= {0x06, 0x07, 0x0F}
+            syncs = rig.recorder.with_id(0x080)
+            assert len(syncs) == rig.master.syncs_sent
+            assert all(frame.dlc == 0 for frame in syncs)
+            assert rig.loop.events == []
+
+    def test_optional_objects_missing_are_skipped_with_one_warning(
+        self, channel: str, caplog: pytest.LogCaptureFixture
+    ) -> None:
+        """Issue case 1: a drive without 0x6066, 0x6007, 0x605A, 0x605E, 0x6065, 0x1016 and
+        0x1017 boots, supervised by node guarding, its skipped objects in the feedback."""
+        bare = self.NODE_IDS[1]
+        with (
+            caplog.at_level(logging.WARNING, logger="drives.boot"),
+            self.rig(channel, quirks={bare: DriveQuirks(no_optional_objects=True)}) as rig,
+        ):
+            feedback = rig.loop.boot(self.boot_timeout())
+            assert all(f.fault is None for f in feedback), [str(f.fault) for f in feedback]
+            skipped = set(feedback[1].skipped_objects)
+            assert skipped == OPTIONAL_OBJECTS - {0x1016}  # 0x1016 follows 0x1017: not tried
+            assert feedback[0].skipped_objects == feedback[2].skipped_objects == ()
+            warnings = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
+            assert len(warnings) == len(skipped)
+            assert f"node {bare}: 0x6066:00 following error timeout skipped: abort 0x06020000" in (
+                "\n".join(warnings)
+            )
+            rig.loop.enable()
+            self.stream(rig, 50)
+            remote = [m for m in rig.recorder.with_id(0x700 + bare) if m.is_remote_frame]
+            assert remote, "the bare drive is not node-guarded"
+
+    def test_interpolation_period_written_as_whole_milliseconds(self, channel: str) -> None:
+        """Issue case 2: 0x60C2 = (4, -3) for 4 ms, read back, accepted by a drive that takes
+        index -3 only."""
+        with self.rig(
+            channel, quirks={n: DriveQuirks(interpolation_ms_only=True) for n in self.NODE_IDS}
+        ) as rig:
+            rig.loop.boot(self.boot_timeout())
+            for node_id in self.NODE_IDS:
+                writes = rig.recorder.sdo_downloads(node_id)
+                assert (0x60C2, 1, bytes([4])) in writes
+                assert (0x60C2, 2, bytes([0xFD])) in writes  # -3
+                uploads = rig.recorder.sdo_uploads(node_id)
+                assert (0x60C2, 1) in uploads and (0x60C2, 2) in uploads
+
+    def test_drive_in_fault_at_power_on_boots_reports_and_resets(self, channel: str) -> None:
+        """Issue case 3 (drive side): the drive boots in FAULT, is reported per node with the
+        cause, and the fault reset brings it to OPERATION ENABLED."""
+        faulty = self.NODE_IDS[0]
+        with self.rig(channel, quirks={faulty: DriveQuirks(fault_at_power_on=True)}) as rig:
+            feedback = rig.loop.boot(self.boot_timeout())
+            assert feedback[0].state is State.FAULT
+            fault = feedback[0].fault
+            assert fault is not None and fault.kind in (FaultKind.EMCY, FaultKind.FAULT_STATE)
+            assert "0x8130" in str(fault) and str(fault).startswith(f"axis X (node {faulty})")
+            assert feedback[1].fault is None and feedback[2].fault is None
+            rig.master.request_fault_reset()
+            rig.master.request_enable()
+            feedback = rig.loop.run_until(
+                lambda fb: all(f.enabled for f in fb), 2.0 * self.TIMEOUT_SCALE, what="enabled"
+            )
+            assert all(f.fault is None for f in feedback)
+            controlwords = [cw for cw, _ in self.rpdo_targets(rig.recorder, faulty)]
+            assert 0x80 in controlwords  # the bit 7 edge
+
+    def test_fixed_read_only_mapping_is_used_as_the_drive_has_it(self, channel: str) -> None:
+        """Issue case 5: PDOs fixed in a vendor layout (TPDO1 = position, statusword on
+        0x280 + node) are read and used; nothing is written to them."""
+        fixed = self.NODE_IDS[2]
+        with self.rig(channel, quirks={fixed: DriveQuirks(fixed_pdo_mapping=True)}) as rig:
+            rig.loop.boot(self.boot_timeout())
+            pdo_writes = [
+                (index, sub)
+                for index, sub, _ in rig.recorder.sdo_downloads(fixed)
+                if 0x1400 <= index < 0x1C00
+            ]
+            assert pdo_writes == []
+            rig.loop.enable()
+            worst = self.stream(rig, 100)
+            assert worst[2] <= self.WINDOW_MM / 4
+            assert rig.recorder.with_id(0x280 + fixed), "TPDO1 not on the drive's COB-ID"
+
+    def test_guarding_only_drive_is_supervised_by_node_guarding(self, channel: str) -> None:
+        """Issue case 7: a drive without heartbeat objects is guarded (0x100C/0x100D, remote
+        frames, toggle) and its silence detected within the life time."""
+        guarded = self.NODE_IDS[0]
+        with self.rig(channel, quirks={guarded: DriveQuirks(guarding_only=True)}) as rig:
+            feedback = rig.loop.boot(self.boot_timeout())
+            assert feedback[0].skipped_objects == (0x1017,)
+            writes = rig.recorder.sdo_downloads(guarded)
+            assert (0x100C, 0, struct.pack("<H", 100)) in writes
+            assert (0x100D, 0, bytes([3])) in writes
+            rig.loop.run_for(0.3)
+            answers = [m for m in rig.recorder.with_id(0x700 + guarded) if not m.is_remote_frame]
+            toggles = [m.data[0] & 0x80 for m in answers if m.data[0] & 0x7F == 0x05]
+            assert len(toggles) >= 2 and all(a != b for a, b in itertools.pairwise(toggles))
+            assert rig.loop.events == []
+            rig.launcher.stop_answering(guarded)
+            silenced = time.monotonic()
+            # Stale feedback shows first; the lost node replaces it once the life time is over.
+            feedback = rig.loop.run_until(
+                lambda fb: fb[0].fault is not None and fb[0].fault.kind is FaultKind.GUARDING,
+                2.0 * self.TIMEOUT_SCALE,
+                what="guarding loss",
+            )
+            assert time.monotonic() - silenced <= 0.3 * 1.5 * self.TIMEOUT_SCALE + 0.1
+            assert f"axis X (node {guarded}): no node-guarding answer for" in str(feedback[0].fault)
+
+    def test_clean_shutdown_leaves_no_drive_faulted_and_a_second_start_finds_them_healthy(
+        self, channel: str
+    ) -> None:
+        """Issue case 8: the shutdown disarms 0x1016 (and 0x1006) before NMT PRE-OPERATIONAL
+        and the end of our heartbeat; drives stay quiet, a second master finds them healthy."""
+        with self.rig(channel) as rig:
+            rig.loop.boot(self.boot_timeout())
+            rig.loop.enable()
+            self.stream(rig, 50)
+            rig.loop.shutdown(self.boot_timeout())
+            for node_id in self.NODE_IDS:
+                writes = rig.recorder.sdo_downloads(node_id)
+                assert writes[-2:] == [(0x1016, 1, bytes(4)), (0x1006, 0, bytes(4))]
+                nmt = [bytes(m.data) for m in rig.recorder.with_id(0x000)]
+                assert nmt[-len(self.NODE_IDS) :].count(bytes([0x80, node_id])) == 1
+            # Longer than the drives' consumer time (2.5 heartbeats): nothing may fault.
+            time.sleep(3 * self.HEARTBEAT_MS / 1000.0)
+            assert not any(rig.recorder.emcy_codes(n) for n in self.NODE_IDS)
+            second = Cia402Master(self.open_bus(channel), self.axes(), self.settings())
+            try:
+                loop = CycleLoop(second, self.PERIOD_S)
+                feedback = loop.boot(self.boot_timeout())
+                loop.run_for(0.2)
+                assert all(f.state is State.SWITCH_ON_DISABLED for f in loop.feedback)
+                assert all(f.fault is None for f in feedback) and loop.events == []
+                loop.shutdown(self.boot_timeout())
+            finally:
+                second.bus.shutdown()
+
+    def test_late_boot_is_reported_then_configured_when_it_appears(self, channel: str) -> None:
+        """Issue case 9: a drive that boots after boot_timeout_s is reported (BOOT, naming the
+        node), looked for, configured when it appears; a fault reset then clears it."""
+        late = self.NODE_IDS[2]
         timeout_s = 0.5 * self.TIMEOUT_SCALE
-        present = tuple(self.NODE_IDS[:-1])
-        silent = self.NODE_IDS[-1]
-        rig_iter = self._rig(channel, present, boot_timeout_s=timeout_s)
-        rig = next(rig_iter)
-        try:
-            started = time.monotonic()
-            with pytest.raises(BootTimeout) as caught:
-                rig.master.boot()
-            elapsed = time.monotonic() - started
-            assert caught.value.node_id == silent
-            assert str(caught.value).startswith(f"node {silent}: no boot-up or heartbeat")
-            assert timeout_s <= elapsed <= timeout_s + 0.5 * self.TIMEOUT_SCALE
-            time.sleep(0.1 * self.TIMEOUT_SCALE)  # frames in flight reach the recorder
-            ids = rig.recorder.ids()
-            # Nothing was configured, started or enabled: no SDO, no RPDO, no SYNC, no NMT start.
-            assert not ids & {0x600 + n for n in self.NODE_IDS}
-            assert not ids & {0x200 + n for n in self.NODE_IDS}
-            assert 0x080 not in ids
-            nmt = [r.frame for r in rig.recorder.snapshot() if r.frame.arbitration_id == 0]
-            assert all(frame.data[0] == 0x82 for frame in nmt)  # only reset communication
-            # The present drives booted (boot-up seen) and stay silent otherwise: no TPDO.
-            assert {0x700 + n for n in present} <= ids
-            assert not ids & {0x180 + n for n in self.NODE_IDS}
-        finally:
-            rig_iter.close()
+        with self.rig(
+            channel,
+            quirks={late: DriveQuirks(boot_delay_s=2 * timeout_s)},
+            settings=self.settings(boot_timeout_s=timeout_s),
+        ) as rig:
+            rig.master.start()
+            feedback = rig.loop.run_until(
+                lambda fb: fb[2].fault is not None, 4 * timeout_s, what="boot fault"
+            )
+            fault = feedback[2].fault
+            assert fault.kind is FaultKind.BOOT
+            assert str(fault) == (
+                f"axis Z (node {late}): no boot-up, heartbeat or SDO answer within "
+                f"{timeout_s:g} s; looking for the drive"
+            )
+            assert feedback[2].phase is BootPhase.WAITING
+            feedback = rig.loop.run_until(
+                lambda fb: all(f.ready for f in fb), self.boot_timeout(), what="late drive ready"
+            )
+            assert feedback[2].fault is fault  # stays until reset
+            rig.master.request_fault_reset()
+            rig.loop.step()
+            feedback = rig.loop.step()
+            assert all(f.fault is None for f in feedback)
+            assert [e.kind for e in rig.loop.events] == [FaultKind.BOOT]
+            rig.loop.enable()
 
-    def test_injected_fault_then_reset_and_reenable_without_jump(self, rig: Rig) -> None:
-        master = self.booted(rig)
-        assert rig.launcher is not None
-        faulty_index = 1
-        faulty_node = self.NODE_IDS[faulty_index]
-        faulty_name = self.AXIS_NAMES[faulty_index]
-        start = [f.commanded_mm for f in master.read_feedback()]
-        k = 0
-        for _ in range(round(0.4 / self.PERIOD_S)):
-            k += 1
-            self.fast_cycle(master, self.motion(k, start))
-        rig.launcher.inject_fault(faulty_node, 0x4210)
-        # The fault must be visible within 2 cycles of its EMCY reaching the bus.
-        emcy_at: int | None = None
-        fault = None
-        deadline = time.monotonic() + 5.0 * self.TIMEOUT_SCALE
-        while fault is None:
-            assert time.monotonic() < deadline, "injected fault never seen"
-            k += 1
-            targets = self.motion(k, start)
-            targets[faulty_index] = None
-            feedback = self.fast_cycle(master, targets)
-            fault = feedback[faulty_index].fault
-            if emcy_at is None:
-                emcy_at = next(
-                    (
-                        r.syncs_sent
-                        for r in rig.recorder.snapshot()
-                        if r.frame.arbitration_id == 0x80 + faulty_node
-                    ),
-                    None,
-                )
-            if emcy_at is not None and fault is None:
-                assert master.syncs_sent - emcy_at <= 2, "fault not visible within 2 cycles"
-        assert fault.emcy_code == 0x4210
-        assert fault.kind is FaultKind.EMCY
-        assert str(fault).startswith(f"axis {faulty_name} (node {faulty_node}): EMCY 0x4210")
-        assert all(f.fault is None for i, f in enumerate(feedback) if i != faulty_index)
-        # Let the fault reaction finish, then reset and re-enable while the others keep moving.
-        master.request_fault_reset([faulty_name])
-        master.request_enable([faulty_name])
-        for _ in range(50):
-            k += 1
-            targets = self.motion(k, start)
-            targets[faulty_index] = None
-            feedback = self.fast_cycle(master, targets)
-            if feedback[faulty_index].enabled:
-                break
-        else:
-            pytest.fail(f"not re-enabled: {feedback[faulty_index]}")
-        item = feedback[faulty_index]
-        assert item.fault is None
-        # Re-enabled where the drive stands; then move on from there.
-        assert item.commanded_mm == pytest.approx(item.position_mm, abs=1.0 / self.COUNTS_PER_MM)
-        restart = list(start)
-        restart[faulty_index] = item.commanded_mm
-        k0 = k
-        for _ in range(round(0.4 / self.PERIOD_S)):
-            k += 1
-            targets = self.motion(k, start)
-            targets[faulty_index] = self.motion(k - k0, restart)[faulty_index]
-            feedback = self.fast_cycle(master, targets)
-            assert all(f.fault is None for f in feedback), [str(f.fault) for f in feedback]
-            assert abs(feedback[faulty_index].following_error_mm) <= self.WINDOW_MM
-        for node_id in self.NODE_IDS:
-            self.assert_no_target_jump(rig.recorder, node_id)
-        controlwords = [cw for cw, _ in self.rpdo_targets(rig.recorder, faulty_node)]
-        reset_edge = [i for i in range(1, len(controlwords)) if controlwords[i] == 0x80]
-        assert reset_edge and controlwords[reset_edge[0] - 1] & 0x80 == 0
+    def test_heartbeat_loss_detected_within_three_periods(self, channel: str) -> None:
+        with self.rig(channel) as rig:
+            rig.loop.boot(self.boot_timeout())
+            rig.loop.enable()
+            rig.loop.run_for(2 * self.HEARTBEAT_MS / 1000.0)
+            lost = self.NODE_IDS[2]
+            rig.launcher.stop_answering(lost)
+            silenced_at = time.monotonic()
+            feedback = rig.loop.run_until(
+                lambda fb: fb[2].fault is not None,
+                10 * self.HEARTBEAT_MS / 1000.0,
+                what="heartbeat loss",
+            )
+            detected_s = time.monotonic() - silenced_at
+            period_s = self.HEARTBEAT_MS / 1000.0
+            fault = feedback[2].fault
+            assert fault.kind in (FaultKind.HEARTBEAT_LOSS, FaultKind.STALE_FEEDBACK)
+            feedback = rig.loop.run_until(
+                lambda fb: fb[2].fault.kind is FaultKind.HEARTBEAT_LOSS,
+                4 * period_s,
+                what="heartbeat loss",
+            )
+            detected_s = time.monotonic() - silenced_at
+            assert detected_s <= 3 * period_s + 0.05, f"detected after {detected_s:.3f} s"
+            assert f"axis Z (node {lost}): no heartbeat for" in str(feedback[2].fault)
+            assert feedback[2].phase is BootPhase.WAITING  # looked for again
+            kinds = [e.kind for e in rig.loop.events]
+            assert kinds.count(FaultKind.HEARTBEAT_LOSS) == 1
+            assert set(kinds) <= {FaultKind.HEARTBEAT_LOSS, FaultKind.STALE_FEEDBACK}, kinds
+            others = feedback[:2]
+            assert all(f.fault is None and f.enabled for f in others), others
 
-    def test_heartbeat_loss_detected_within_three_periods(self, rig: Rig) -> None:
-        master = self.booted(rig)
-        assert rig.launcher is not None
-        lost_index = 2
-        lost_node = self.NODE_IDS[lost_index]
-        period_s = self.HEARTBEAT_MS / 1000.0
-        # Real-time cycle: heartbeats are wall-clock.
-        next_cycle = time.monotonic()
-        for _ in range(round(2 * period_s / self.PERIOD_S)):
-            feedback = master.read_feedback()
-            assert all(f.fault is None for f in feedback), [str(f.fault) for f in feedback]
-            master.exchange()
-            next_cycle += self.PERIOD_S
-            time.sleep(max(0.0, next_cycle - time.monotonic()))
-        rig.launcher.stop_answering(lost_node)
-        silenced_at = time.monotonic()
-        while True:
-            feedback = master.read_feedback()
-            fault = feedback[lost_index].fault
-            if fault is not None and fault.kind is FaultKind.HEARTBEAT_LOSS:
-                detected_s = time.monotonic() - silenced_at
-                break
-            assert time.monotonic() - silenced_at < 10 * period_s, "heartbeat loss not detected"
-            master.exchange()
-            next_cycle = max(next_cycle + self.PERIOD_S, time.monotonic())
-            time.sleep(max(0.0, next_cycle - time.monotonic()))
-        assert detected_s <= 3 * period_s, f"detected after {detected_s:.3f} s"
-        assert feedback[lost_index].heartbeat_age_s <= 3 * period_s
-        assert f"axis {self.AXIS_NAMES[lost_index]} (node {lost_node}): no heartbeat" in str(fault)
-        others = [f for i, f in enumerate(feedback) if i != lost_index]
-        assert all(f.fault is None and f.state is State.OPERATION_ENABLED for f in others), [
-            (f.state, str(f.fault)) for f in others
-        ]
+    def test_injected_fault_then_reset_and_reenable_without_jump(self, channel: str) -> None:
+        with self.rig(channel, realtime=False) as rig:
+            rig.loop.boot(self.boot_timeout())
+            rig.loop.enable()
+            self.stream(rig, 100)
+            faulty = self.NODE_IDS[1]
+            rig.launcher.inject_fault(faulty, 0x4210)
+            start = [f.position_mm for f in rig.loop.feedback]
+            periods = iter(range(1, 1000))
+
+            def targets(feedback: tuple[AxisFeedback, ...]) -> list[float | None]:
+                moved: list[float | None] = list(self.motion(next(periods), start))
+                moved[1] = None  # the faulted axis holds where it stands
+                return moved
+
+            feedback = rig.loop.run_until(
+                lambda fb: fb[1].fault is not None and fb[1].fault.kind is FaultKind.EMCY,
+                1.0 * self.TIMEOUT_SCALE,
+                targets,
+                what="EMCY of the injected fault",
+            )
+            fault = feedback[1].fault
+            assert fault.emcy_code == 0x4210
+            assert str(fault).startswith(f"axis Y (node {faulty}): EMCY 0x4210")
+            assert feedback[0].fault is None and feedback[2].fault is None
+            assert rig.loop.events[0] == fault
+            rig.master.request_fault_reset(["Y"])
+            rig.master.request_enable(["Y"])
+            feedback = rig.loop.run_until(
+                lambda fb: fb[1].enabled, 1.0 * self.TIMEOUT_SCALE, targets, what="Y re-enabled"
+            )
+            assert feedback[1].fault is None and not feedback[1].fault_reset_pending
+            assert feedback[1].commanded_mm == pytest.approx(feedback[1].position_mm, abs=0.002)
+            for node_id in self.NODE_IDS:
+                self.assert_no_target_jump(rig.recorder, node_id)
+            controlwords = [cw for cw, _ in self.rpdo_targets(rig.recorder, faulty)]
+            edge = controlwords.index(0x80)
+            assert controlwords[edge - 1] & 0x80 == 0
+
+    def test_every_fault_is_an_event_also_after_the_first(self, channel: str) -> None:
+        """Issue case 11: a second and third drive fault, while the first is latched and the
+        machine stops, are each reported with axis, kind, EMCY code and text, in order."""
+        with self.rig(channel) as rig:
+            rig.loop.boot(self.boot_timeout())
+            rig.loop.enable()
+            rig.loop.run_for(0.1)
+            rig.launcher.inject_fault(self.NODE_IDS[0], 0x4210)
+            rig.loop.run_until(lambda fb: fb[0].fault is not None, 1.0 * self.TIMEOUT_SCALE)
+            rig.master.request_quick_stop()  # the machine stops; the others brake
+            rig.launcher.inject_fault(self.NODE_IDS[1], 0x8100)
+            rig.launcher.inject_fault(self.NODE_IDS[2], 0x8130)
+            rig.loop.run_until(
+                lambda fb: all(f.fault is not None for f in fb), 1.0 * self.TIMEOUT_SCALE
+            )
+            rig.loop.run_for(0.05)
+            emcys = [(e.axis, e.emcy_code) for e in rig.loop.events if e.kind is FaultKind.EMCY]
+            assert emcys == [("X", 0x4210), ("Y", 0x8100), ("Z", 0x8130)]
+            texts = [str(e) for e in rig.loop.events if e.kind is FaultKind.EMCY]
+            assert texts[1] == (
+                f"axis Y (node {self.NODE_IDS[1]}): EMCY 0x8100 communication (SYNC timeout) "
+                "(register 0x11)"
+            )
+            assert rig.master.take_fault_events() == ()  # taken by the loop already

@@ -1,39 +1,22 @@
-"""Drives without a bus, for testing the cycle and the machine period by period.
+"""Drives without a bus, for testing the machine logic period by period.
 
-The per-period API of the CiA-402 master (:class:`runtime.cycle.cycle.CycleDrives`) with ideal
-drives: each axis steps one CiA 402 transition per period toward what was requested, follows
-its target one period late (the target sent with a SYNC is reached by the next), and can be
-given a fault, which is reported once as an event and stays latched until a fault reset.
+:class:`FakeDrives` has the cycle API of :class:`drives.master.Cia402Master` (``start``,
+``transmit_period``, ``receive``, ``update``, ``write_targets``, the requests, the fault
+events, ``begin_shutdown`` / ``shutdown_done``) with ideal drives: each axis is ready at once,
+steps one CiA 402 transition per period toward what was requested, follows its target one
+period late, and can be given a fault. Feedback records and fault events are the master's own
+types.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from drives.cia402 import State
-from drives.monitor import FaultKind
-
-
-@dataclass(frozen=True)
-class FakeFault:
-    axis: str
-    node_id: int
-    kind: FaultKind
-    emcy_code: int | None
-    text: str
-
-
-@dataclass(frozen=True)
-class FakeFeedback:
-    axis: str
-    node_id: int
-    state: State | None
-    statusword: int
-    boot_phase: int
-    position_mm: float
-    following_error_mm: float
-    fault: FakeFault | None
+from drives.boot import BootPhase
+from drives.cia402 import State, encode_statusword
+from drives.master import AxisFeedback
+from drives.monitor import AxisFault, FaultKind
 
 
 @dataclass
@@ -43,108 +26,133 @@ class FakeAxis:
     state: State = State.SWITCH_ON_DISABLED
     position_mm: float = 0.0
     target_mm: float = 0.0
-    sent_mm: float = 0.0
+    followed_mm: float = 0.0
     request: str = "disable"
-    fault: FakeFault | None = None
+    fault: AxisFault | None = None
+    reset_pending: bool = False
 
 
 class FakeDrives:
-    """Ideal drives behind the master's per-period API; see the module docstring."""
+    """The master's cycle API with ideal drives (1000 counts per mm)."""
 
     def __init__(self, names: Sequence[str] = ("X", "Y", "Z")) -> None:
         self.axes = [FakeAxis(name, i + 1) for i, name in enumerate(names)]
         self.requests: list[str] = []
         self.periods = 0
+        self.events: list[AxisFault] = []
+        self.feedback: tuple[AxisFeedback, ...] = ()
         self.started = False
         self.shutting_down = False
-        self._events: list[FakeFault] = []
 
-    # -- lifecycle ---------------------------------------------------------------------------
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        return tuple(axis.name for axis in self.axes)
 
+    # boot and shutdown
     def start(self) -> None:
         self.started = True
 
     def begin_shutdown(self) -> None:
         self.shutting_down = True
+        self._request("disable", None)
 
     @property
     def shutdown_done(self) -> bool:
-        return self.shutting_down and all(a.state is not State.OPERATION_ENABLED for a in self.axes)
+        return self.shutting_down and all(
+            axis.state in (State.SWITCH_ON_DISABLED, State.FAULT) for axis in self.axes
+        )
 
-    # -- requests ----------------------------------------------------------------------------
+    # requests
+    def request_enable(self, axes: Iterable[str] | None = None) -> None:
+        self._request("enable", axes)
 
-    def request_enable(self) -> None:
-        self._request("enable")
+    def request_disable(self, axes: Iterable[str] | None = None) -> None:
+        self._request("disable", axes)
 
-    def request_disable(self) -> None:
-        self._request("disable")
+    def request_quick_stop(self, axes: Iterable[str] | None = None) -> None:
+        self._request("quick_stop", axes)
 
-    def request_quick_stop(self) -> None:
-        self._request("quick_stop")
-
-    def request_fault_reset(self) -> None:
+    def request_fault_reset(self, axes: Iterable[str] | None = None) -> None:
         self.requests.append("fault_reset")
-        for axis in self.axes:
-            if axis.state is State.FAULT:
-                axis.state = State.SWITCH_ON_DISABLED
-            axis.fault = None
+        for axis in self._select(axes):
+            axis.reset_pending = True
 
-    def _request(self, what: str) -> None:
+    def _request(self, what: str, axes: Iterable[str] | None) -> None:
         self.requests.append(what)
-        for axis in self.axes:
+        for axis in self._select(axes):
             axis.request = what
 
-    # -- faults ------------------------------------------------------------------------------
+    def _select(self, axes: Iterable[str] | None) -> list[FakeAxis]:
+        if axes is None:
+            return self.axes
+        names = {axes} if isinstance(axes, str) else set(axes)
+        return [axis for axis in self.axes if axis.name in names]
 
+    # faults
     def inject_fault(
-        self, index: int, *, emcy_code: int = 0x4210, text: str = "EMCY 0x4210 over-temperature"
+        self, index: int, *, emcy_code: int = 0x4210, text: str = "over-temperature"
     ) -> None:
+        """The drive of axis ``index`` faults with an EMCY now (an event at the next update)."""
         axis = self.axes[index]
         axis.state = State.FAULT
-        axis.fault = FakeFault(axis.name, axis.node_id, FaultKind.EMCY, emcy_code, text)
-        self._events.append(axis.fault)
+        axis.request = "disable"
+        fault = AxisFault(axis.name, axis.node_id, FaultKind.EMCY, emcy_code, text)
+        axis.fault = axis.fault or fault
+        self.events.append(fault)
 
-    # -- the period --------------------------------------------------------------------------
+    def take_fault_events(self) -> tuple[AxisFault, ...]:
+        events = tuple(self.events)
+        self.events.clear()
+        return events
 
+    # the period
     def transmit_period(self) -> None:
         self.periods += 1
         for axis in self.axes:
             if axis.state is State.OPERATION_ENABLED:
-                axis.position_mm = axis.sent_mm
-            axis.sent_mm = axis.target_mm
+                axis.followed_mm = axis.position_mm = axis.target_mm
+            else:
+                axis.followed_mm = axis.target_mm = axis.position_mm
             axis.state = _next_state(axis)
 
-    def receive(self, now_s: float) -> None:
-        pass
+    def receive(self, now_s: float) -> int:
+        return 0
 
-    def update(self, now_s: float) -> tuple[FakeFeedback, ...]:
-        return tuple(
-            FakeFeedback(
+    def update(self, now_s: float) -> tuple[AxisFeedback, ...]:
+        for axis in self.axes:
+            if axis.reset_pending and axis.state is State.FAULT:
+                axis.state = State.SWITCH_ON_DISABLED
+            if axis.reset_pending:
+                axis.reset_pending = False
+                axis.fault = None
+        self.feedback = tuple(
+            AxisFeedback(
                 axis=a.name,
                 node_id=a.node_id,
+                phase=BootPhase.READY if self.started else BootPhase.WAITING,
                 state=a.state,
-                statusword=0,
-                boot_phase=4,
+                statusword=encode_statusword(a.state),
+                position_counts=round(a.position_mm * 1000),
                 position_mm=a.position_mm,
-                following_error_mm=(
-                    a.position_mm - a.sent_mm if a.state is State.OPERATION_ENABLED else 0.0
-                ),
+                commanded_mm=a.target_mm,
+                target_mm=a.followed_mm,
+                following_error_mm=a.position_mm - a.followed_mm,
+                feedback_age_cycles=1,
+                heartbeat_age_s=0.0,
+                error_code=(a.fault.emcy_code or 0) if a.fault else 0,
+                skipped_objects=(),
                 fault=a.fault,
+                fault_reset_pending=a.reset_pending,
             )
             for a in self.axes
         )
-
-    def take_fault_events(self) -> list[FakeFault]:
-        events, self._events = self._events, []
-        return events
+        return self.feedback
 
     def write_targets(self, positions_mm: Sequence[float | None] | None) -> None:
         if positions_mm is None:
             return
         for axis, target in zip(self.axes, positions_mm, strict=True):
-            if axis.state is not State.OPERATION_ENABLED:
-                axis.target_mm = axis.position_mm
-            elif target is not None:
+            if target is not None and axis.state is State.OPERATION_ENABLED:
                 axis.target_mm = target
 
 

@@ -1,6 +1,7 @@
 """Simulated CiA 402 drives on a CAN bus: in-process for tests, or as their own process.
 
-:mod:`drives.sim.drive` holds the drive, :mod:`drives.sim.dynamics` its motion model and
+:mod:`drives.sim.drive` holds the drive, :mod:`drives.sim.dynamics` its motion model,
+:mod:`drives.sim.quirks` the switches that make it behave like other vendors' drives and
 :mod:`drives.sim.service` the ``softmotion sim-drive`` process entry.
 """
 
@@ -10,5 +11,12 @@ from drives.sim.drive import (
     SimulatedDriveSet,
     start_simulated_drives,
 )
+from drives.sim.quirks import DriveQuirks
 
-__all__ = ["DriveModel", "SimulatedDrive", "SimulatedDriveSet", "start_simulated_drives"]
+__all__ = [
+    "DriveModel",
+    "DriveQuirks",
+    "SimulatedDrive",
+    "SimulatedDriveSet",
+    "start_simulated_drives",
+]

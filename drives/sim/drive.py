@@ -1,24 +1,28 @@
 """A simulated CiA 402 servo drive in CSP mode that behaves like a real one on a CANopen bus.
 
 Sources: CiA 301 (boot-up, NMT states and commands, heartbeat producer 0x1017 and consumer 0x1016,
-SDO server, PDO communication and mapping 0x1400-0x1A03 with their write rules, SYNC 0x1005 and
-cycle 0x1006, EMCY 0x1014 with error register 0x1001 and history 0x1003) and CiA 402 (device
+node guarding 0x100C / 0x100D with life guarding, SDO server, PDO communication and mapping
+0x1400-0x1A03 with their write rules, SYNC 0x1005, cycle 0x1006 and counter 0x1019, EMCY 0x1014
+with error register 0x1001 and history 0x1003) and CiA 402 (device
 control state machine with transitions 1-16 from :mod:`drives.cia402`, quick stop 0x605A,
 fault reaction 0x605E, abort connection 0x6007, CSP objects 0x6060/0x6061, 0x6064, 0x6065,
 0x6066, 0x606C, 0x607A, 0x60C2, 0x60F4, EMCY 0x8611 following error).
 
-Behaviour: power-on (:meth:`SimulatedDrive.start`) sends the boot-up message after
+Behaviour: power-on (:meth:`SimulatedDrive.start`) sends the boot-up message after the quirks'
 ``boot_delay_s`` and enters PRE-OPERATIONAL; the SDO server (``canopen.LocalNode``) answers in
 PRE-OPERATIONAL and OPERATIONAL; PDOs flow only in OPERATIONAL. Sync RPDOs (types 0-240) are
 latched and applied at the next SYNC, event RPDOs (254/255) at once. At each SYNC the drive
 applies its RPDOs, steps the state machine and the motion model for one period (0x1006, or 0x60C2
 while 0x1006 is 0), then sends its TPDOs (types 1-240 every n-th SYNC, type 0 and 254/255 when
 their data changed). FAULT REACTION ACTIVE lasts at least one SYNC. The heartbeat producer is off
-until 0x1017 is written (the CiA 301 default 0). A watchdog thread per drive sends heartbeats and
-detects SYNC loss (no SYNC for ``sync_timeout_factor`` x 0x1006 while OPERATION ENABLED -> fault
-0x8100) and master heartbeat loss (0x1016 -> EMCY 0x8130 and the 0x6007 reaction); once SYNC
-is lost it also finishes running quick stop and fault reaction ramps on its own clock. A watchdog
-that wakes more than a period late was stalled with its process (drives simulated in the
+until 0x1017 is written (the CiA 301 default 0); while it is off the drive answers node guarding
+remote frames. A SYNC whose length does not match 0x1019 (no data, or the counter byte) is not
+used and raises EMCY 0x8240. A watchdog thread per drive sends heartbeats (and delayed SDO
+answers, see :mod:`drives.sim.quirks`) and detects SYNC loss (no SYNC for
+``sync_timeout_factor`` x 0x1006 while OPERATION ENABLED -> fault 0x8100), master heartbeat loss
+(0x1016) and life guarding loss (0x100C × 0x100D), both EMCY 0x8130 and the 0x6007 reaction;
+once SYNC is lost it also finishes running quick stop and fault reaction ramps on its own clock.
+A watchdog that wakes more than a period late was stalled with its process (drives simulated in the
 master's process share its interpreter), so SYNCs that went out meanwhile may still wait in the
 receive thread: it gives them one period before it calls the silence SYNC loss.
 
@@ -31,25 +35,29 @@ the identifiers the drives subscribed to (a kernel filter on SocketCAN), so the 
 PDOs cost nothing here. Callbacks never raise into the notifier (errors are logged with
 ``logger.exception``).
 
-Not modelled: bus arbitration, bus load, error frames and bus-off, RTR, SDO block transfers
-beyond canopen's server, LSS, store/restore, SYNC counter and SYNC DLC check (0x8240), RPDO
-deadline (0x8250), TPDO inhibit time and event timer, dummy mapping, bit-granular mapping, a
-mode-switch delay, halt, modes other than CSP (8), coasting (code 0 stops at once), and the
-physics behind over-temperature or over-current (injected, not simulated).
+Not modelled: bus arbitration, bus load, error frames and bus-off, remote frames other than node
+guarding, SDO block transfers beyond canopen's server, LSS, store/restore, TPDO SYNC start value
+(0x18xx sub6), RPDO deadline (0x8250), TPDO inhibit time and event timer, dummy mapping,
+bit-granular mapping, a mode-switch delay, halt, modes other than CSP (8), coasting (code 0
+stops at once), and the physics behind over-temperature or over-current (injected, not
+simulated).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import random
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Final
 
+import can
 import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
@@ -58,17 +66,21 @@ from drives import cia402, emcy, objects
 from drives.bus import open_bus
 from drives.cia402 import State
 from drives.objects import NmtCommand, NmtState
+from drives.sdo_client import (
+    ABORT_DEVICE_STATE,
+    ABORT_MAPPING_TOO_LONG,
+    ABORT_NOT_MAPPABLE,
+    ABORT_VALUE_RANGE,
+    ABORT_VALUE_TOO_HIGH,
+    ABORT_VALUE_TOO_LOW,
+)
 from drives.sim.dynamics import Axis, DriveModel
+from drives.sim.quirks import DriveQuirks, served_od
 
 __all__ = ["DriveModel", "SimulatedDrive", "SimulatedDriveSet", "start_simulated_drives"]
 
 logger = logging.getLogger(__name__)
 
-# SDO abort codes (CiA 301 §7.2.4.3.17).
-ABORT_MAPPING_NOT_ALLOWED: Final[int] = 0x0604_0041
-ABORT_MAPPING_TOO_LONG: Final[int] = 0x0604_0042
-ABORT_VALUE_RANGE: Final[int] = 0x0609_0030
-ABORT_DEVICE_STATE: Final[int] = 0x0800_0022
 
 #: Objects kept in the process image: PDO-mappable, served to SDO from memory, never blocking.
 _PROCESS_OBJECTS: Final = (
@@ -117,6 +129,8 @@ _WINDOW_OFF: Final[int] = 0xFFFF_FFFF  # 0x6065 value that switches following co
 
 #: Model of a drive created without one.
 DEFAULT_MODEL: Final = DriveModel()
+#: A drive that behaves as the full CiA 402 drive.
+NO_QUIRKS: Final = DriveQuirks()
 
 
 @dataclass(frozen=True)
@@ -139,6 +153,17 @@ def _is_pdo_object(index: int, base: int) -> bool:
     return base <= index < base + objects.PDO_COUNT
 
 
+def _check_range(variable: ODVariable, value: int) -> None:
+    """Refuse a value outside the served object's range (its EDS LowLimit / HighLimit)."""
+    low, high = variable.min, variable.max
+    if low is not None and low == high and value != low:
+        raise SdoAbortedError(ABORT_VALUE_RANGE)
+    if high is not None and value > high:
+        raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
+    if low is not None and value < low:
+        raise SdoAbortedError(ABORT_VALUE_TOO_LOW)
+
+
 class SimulatedDrive:
     """One simulated CiA 402 drive (CSP) answering on ``network`` as node ``node_id``.
 
@@ -146,9 +171,10 @@ class SimulatedDrive:
         needs its own (one node per id per Network).
     :param node_id: CANopen node-ID, 1..127.
     :param model: motion model and SYNC timeout factor.
-    :param boot_delay_s: time from power-on or NMT reset to the boot-up message.
+    :param quirks: how the drive departs from the full CiA 402 drive (late boot, missing
+        objects, fixed PDOs, ...; see :mod:`drives.sim.quirks`).
     :param clock: monotonic clock in seconds, for the watchdogs.
-    :raises ValueError: if ``node_id`` is not in 1..127 or ``boot_delay_s`` is negative.
+    :raises ValueError: if ``node_id`` is not in 1..127.
     """
 
     #: Longest sleep of the watchdog thread, s (bounds the reaction to configuration changes).
@@ -163,18 +189,18 @@ class SimulatedDrive:
         node_id: int,
         *,
         model: DriveModel = DEFAULT_MODEL,
-        boot_delay_s: float = 0.0,
+        quirks: DriveQuirks = NO_QUIRKS,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError(f"simulated drive: node_id = {node_id}, must be in 1..127")
-        if not (math.isfinite(boot_delay_s) and boot_delay_s >= 0):
-            raise ValueError(f"simulated drive: boot_delay_s = {boot_delay_s!r}, must be >= 0")
         self.network = network
         self.node_id = node_id
         self.model = model
-        self.boot_delay_s = boot_delay_s
+        self.quirks = quirks
         self._clock = clock
+        # SDO answer delays drawn per drive, the same on every run.
+        self._random = random.Random(node_id)
         self._lock = threading.RLock()
         self._wake = threading.Event()
         self._stopping = threading.Event()
@@ -183,8 +209,12 @@ class SimulatedDrive:
         self._pdo_subscriptions: list[tuple[int, Callable]] = []
         self._consumer_subscriptions: list[tuple[int, Callable]] = []
 
+        # The full dictionary types and defaults the drive's model; the served one (what SDO
+        # and the EDS see) lacks what the quirks remove.
         self._od = objects.build_drive_od(node_id)
-        self._local = canopen.LocalNode(node_id, self._od)
+        self._served = served_od(node_id, quirks)
+        self._local = canopen.LocalNode(node_id, self._served)
+        self._local.sdo.send_response = self._send_sdo_response
         # The drive produces its heartbeat itself (real NMT state, silence on demand); the
         # LocalNode's NmtSlave would start a second producer on every 0x1017 write.
         self._local._write_callbacks.remove(self._local.nmt.on_write)
@@ -208,6 +238,7 @@ class SimulatedDrive:
         self._tpdo_countdown: dict[int, int] = {}
         self._tpdo_last: dict[int, bytes] = {}
         self._pdo_length_error = False
+        self._sync_length_error = False
         self._dirty: set[int] = set()
         self._previous_controlword = 0
         self._fault_reaction_reported = False
@@ -219,6 +250,12 @@ class SimulatedDrive:
         self._consumers: dict[int, float] = {}  # node-ID -> timeout s
         self._consumer_seen: dict[int, float] = {}
         self._consumer_lost: set[int] = set()
+        self._fault_at_boot = False
+        self._sdo_answers: deque[tuple[float, bytes]] = deque()
+        self._late_tpdos: deque[list[tuple[int, bytes]]] = deque()
+        self._guard_toggle = 0
+        self._guarded_at: float | None = None
+        self._life_lost = False
         self._reset_application()
         self._reset_communication()
 
@@ -238,6 +275,7 @@ class SimulatedDrive:
             self._axis.hold()
             self._powered = True
             self._answering = True
+            self._fault_at_boot = self.quirks.fault_at_power_on
             self._begin_boot()
         if not self._local.has_network():
             # Association gives the SDO server its Network to answer on; the drive then
@@ -247,6 +285,13 @@ class SimulatedDrive:
             self.network.unsubscribe(objects.NMT_COB_ID, self._local.nmt.on_command)
         self._subscribe(self._subscriptions, self._local.sdo.rx_cobid, self._on_sdo_request)
         self._subscribe(self._subscriptions, objects.NMT_COB_ID, self._on_nmt)
+        # canopen drops remote frames before its subscribers: node guarding requests reach
+        # the drive through a listener of its own, and the subscription lets them through
+        # the bus filter.
+        self._subscribe(
+            self._subscriptions, objects.HEARTBEAT_COB_ID_BASE + self.node_id, self._ignore
+        )
+        self.network.notifier.add_listener(self._on_frame)
         with self._lock:
             self._resubscribe_sync()
             self._compile_pdos()
@@ -274,8 +319,10 @@ class SimulatedDrive:
             self._consumer_subscriptions,
         ):
             self._unsubscribe_all(subscriptions)
+        self.network.notifier.remove_listener(self._on_frame)
         with self._lock:
             self._nmt = NmtState.INITIALISING
+            self._sdo_answers.clear()
 
     def stop_answering(self) -> None:
         """Go silent, like a cut cable: no heartbeat, TPDO, SDO reply or EMCY, and nothing is
@@ -373,7 +420,7 @@ class SimulatedDrive:
 
     def _begin_boot(self) -> None:
         self._nmt = NmtState.INITIALISING
-        self._boot_at = self._clock() + self.boot_delay_s
+        self._boot_at = self._clock() + self.quirks.boot_delay_s
         self._wake.set()
 
     def _finish_boot(self) -> None:
@@ -383,6 +430,11 @@ class SimulatedDrive:
         self._send(objects.HEARTBEAT_COB_ID_BASE + self.node_id, bytes([NmtState.INITIALISING]))
         self._set_nmt(NmtState.PRE_OPERATIONAL)
         self._next_heartbeat = None
+        if self._fault_at_boot:
+            # A fault latched before power-off: the drive comes up in FAULT and says why.
+            self._fault_at_boot = False
+            self._fault(emcy.EMCY_HEARTBEAT)
+            self._set_state(*cia402.fault_reaction_complete(self._state))
 
     def _set_nmt(self, nmt: NmtState) -> None:
         if nmt is self._nmt:
@@ -459,12 +511,19 @@ class SimulatedDrive:
             objects.COMM_CYCLE_PERIOD,
             objects.COB_ID_EMCY,
             objects.PRODUCER_HEARTBEAT,
+            objects.GUARD_TIME,
+            objects.LIFE_TIME_FACTOR,
+            objects.SYNC_COUNTER_OVERFLOW,
         ):
             self._params[(index, 0)] = self._od[index].default
         self._last_sync = None
         self._tpdo_countdown.clear()
         self._tpdo_last.clear()
         self._latched.clear()
+        self._late_tpdos.clear()
+        self._guard_toggle = 0
+        self._guarded_at = None
+        self._life_lost = False
 
     # ---------------------------------------------------------------- SDO
 
@@ -494,6 +553,12 @@ class SimulatedDrive:
         allowed = _ALLOWED_VALUES.get(index)
         if allowed is not None and value not in allowed:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
+        _check_range(od, value)
+        if index == objects.SYNC_COUNTER_OVERFLOW:
+            if value == 1 or value > 240:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)  # CiA 301: 0 or 2..240
+            if self._params[(objects.COMM_CYCLE_PERIOD, 0)]:
+                raise SdoAbortedError(ABORT_DEVICE_STATE)  # changed only while 0x1006 is 0
         if _is_pdo_object(index, objects.RPDO_COMM) or _is_pdo_object(index, objects.TPDO_COMM):
             self._check_comm_write(index, subindex, value)
         elif _is_pdo_object(index, objects.RPDO_MAP):
@@ -543,7 +608,7 @@ class SimulatedDrive:
             or bits != len(var)
             or (is_rpdo and not var.writable)
         ):
-            raise SdoAbortedError(ABORT_MAPPING_NOT_ALLOWED)
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
 
     def _apply_written(self, indices: set[int]) -> None:
         if objects.CONTROLWORD in indices:
@@ -642,6 +707,7 @@ class SimulatedDrive:
         return bytes(buffer)
 
     def _send_sync_tpdos(self) -> None:
+        frames = []
         for n, pdo in self._tpdos.items():
             trans_type = pdo.trans_type
             if trans_type == objects.TRANS_TYPE_SYNC_ACYCLIC:
@@ -652,7 +718,14 @@ class SimulatedDrive:
                     self._tpdo_countdown[n] = trans_type
                     data = self._pack(pdo)
                     self._tpdo_last[n] = data
-                    self._send(pdo.cob_id, data)
+                    frames.append((pdo.cob_id, data))
+        late = self.quirks.late_tpdo_periods
+        if late:
+            # Sent ``late`` SYNCs after the one they answer, with the data of that one.
+            self._late_tpdos.append(frames)
+            frames = self._late_tpdos.popleft() if len(self._late_tpdos) > late else []
+        for cob_id, data in frames:
+            self._send(cob_id, data)
 
     def _send_event_tpdos(self) -> None:
         if self._nmt is not NmtState.OPERATIONAL:
@@ -687,6 +760,13 @@ class SimulatedDrive:
                     NmtState.OPERATIONAL,
                 ):
                     return
+                expected = 1 if self._params[(objects.SYNC_COUNTER_OVERFLOW, 0)] > 1 else 0
+                if len(data) != expected:
+                    if not self._sync_length_error:
+                        self._sync_length_error = True
+                        self._send_emcy(emcy.EMCY_SYNC_LENGTH, self._image[objects.ERROR_REGISTER])
+                    return
+                self._sync_length_error = False
                 now = self._clock()
                 if self._last_sync is None:
                     self._wake.set()  # SYNC supervision starts: the watchdog learns its limit
@@ -778,7 +858,7 @@ class SimulatedDrive:
         following_error = self._image[objects.FOLLOWING_ERROR_ACTUAL]
         self._image[objects.STATUSWORD] = cia402.encode_statusword(
             self._state,
-            warning=bool(self._consumer_lost),
+            warning=bool(self._consumer_lost) or self._life_lost,
             internal_limit=self._axis.limited and self._state is State.OPERATION_ENABLED,
             following=(
                 self._state is State.OPERATION_ENABLED
@@ -888,6 +968,48 @@ class SimulatedDrive:
         if self._answering and self._powered:
             self.network.send_message(can_id, data)
 
+    def _send_sdo_response(self, response: bytes) -> None:
+        """The SDO server's answer: at once, or after the quirks' SDO delay (the watchdog
+        sends it; answers keep their order)."""
+        low, high = self.quirks.sdo_delay_s
+        if high <= 0:
+            self._send(self._local.sdo.tx_cobid, response)
+            return
+        due = self._clock() + self._random.uniform(low, high)
+        if self._sdo_answers:
+            due = max(due, self._sdo_answers[-1][0])
+        self._sdo_answers.append((due, bytes(response)))
+        self._wake.set()
+
+    def _ignore(self, can_id: int, data: bytes, timestamp: float) -> None:
+        """Data frames on a subscription held only for the bus filter."""
+
+    def _on_frame(self, message: can.Message) -> None:
+        """Frames canopen does not dispatch: the node guarding request (a remote frame)."""
+        if not message.is_remote_frame:
+            return
+        if message.arbitration_id != objects.HEARTBEAT_COB_ID_BASE + self.node_id:
+            return
+        try:
+            with self._lock:
+                # A node guards only while its heartbeat producer is off (CiA 301).
+                if (
+                    not self._answering
+                    or not self._powered
+                    or self._nmt is NmtState.INITIALISING
+                    or self._params[(objects.PRODUCER_HEARTBEAT, 0)]
+                ):
+                    return
+                self._send(message.arbitration_id, bytes([self._guard_toggle | self._nmt]))
+                self._guard_toggle ^= 0x80
+                self._guarded_at = self._clock()
+                if self._life_lost:
+                    self._life_lost = False
+                    self._update_statusword()
+                self._wake.set()
+        except Exception:
+            logger.exception("node %d: node guarding request", self.node_id)
+
     def _subscribe(self, registry: list, can_id: int, callback: Callable) -> None:
         self.network.subscribe(can_id, callback)
         registry.append((can_id, callback))
@@ -926,6 +1048,8 @@ class SimulatedDrive:
         self._consumers.clear()
         self._consumer_seen.clear()
         self._consumer_lost.clear()
+        if objects.CONSUMER_HEARTBEAT not in self._served:
+            return
         for sub in range(1, objects.CONSUMER_HEARTBEAT_ENTRIES + 1):
             entry = self._read(objects.CONSUMER_HEARTBEAT, sub)
             node, time_ms = (entry >> 16) & 0x7F, entry & 0xFFFF
@@ -963,6 +1087,25 @@ class SimulatedDrive:
             self._wake.wait(wait_s)
             self._wake.clear()
 
+    def _supervise_life_guarding(self, now: float) -> float:
+        """Life guarding (CiA 301): once guarded, a node not guarded for 0x100C × 0x100D
+        raises EMCY 0x8130 and applies 0x6007. Returns when it is next due."""
+        guard_ms = self._params[(objects.GUARD_TIME, 0)]
+        factor = self._params[(objects.LIFE_TIME_FACTOR, 0)]
+        if not guard_ms or not factor or self._guarded_at is None or self._life_lost:
+            return math.inf
+        limit = self._guarded_at + guard_ms * factor / 1000.0
+        if now <= limit:
+            return limit
+        self._life_lost = True
+        logger.warning(
+            "node %d: life guarding: not guarded for %.3f s", self.node_id, now - self._guarded_at
+        )
+        if not self._abort_connection(emcy.EMCY_HEARTBEAT, "life guarding"):
+            self._send_emcy(emcy.EMCY_HEARTBEAT, self._image[objects.ERROR_REGISTER])
+        self._update_statusword()
+        return math.inf
+
     def _supervise(self, now: float) -> float:
         """Run the time-driven duties due at ``now``; return the next time one is due."""
         deadline = now + self.WATCHDOG_MAX_WAIT_S
@@ -972,6 +1115,13 @@ class SimulatedDrive:
             if now < self._boot_at:
                 return min(deadline, self._boot_at)
             self._finish_boot()
+
+        while self._sdo_answers and self._sdo_answers[0][0] <= now:
+            self._send(self._local.sdo.tx_cobid, self._sdo_answers.popleft()[1])
+        if self._sdo_answers:
+            deadline = min(deadline, self._sdo_answers[0][0])
+
+        deadline = min(deadline, self._supervise_life_guarding(now))
 
         heartbeat_ms = self._params[(objects.PRODUCER_HEARTBEAT, 0)]
         if heartbeat_ms > 0 and self._answering:
@@ -1065,11 +1215,12 @@ def start_simulated_drives(
     *,
     model: DriveModel = DEFAULT_MODEL,
     bitrate: int | None = None,
-    boot_delay_s: float = 0.0,
+    quirks: Mapping[int, DriveQuirks] | None = None,
     clock: Callable[[], float] = time.monotonic,
 ) -> SimulatedDriveSet:
     """Open a bus of their own, create one simulated drive per node-ID and power them on
-    (``model``, ``boot_delay_s`` and ``clock`` as for :class:`SimulatedDrive`).
+    (``model`` and ``clock`` as for :class:`SimulatedDrive`; ``quirks`` by node-ID, the
+    others behave as the full drive).
 
     :raises ValueError: if a node-ID is outside 1..127 or repeated.
     :raises drives.errors.BusUnavailable: if the bus cannot be opened.
@@ -1084,7 +1235,11 @@ def start_simulated_drives(
     try:
         drives = {
             node_id: SimulatedDrive(
-                network, node_id, model=model, boot_delay_s=boot_delay_s, clock=clock
+                network,
+                node_id,
+                model=model,
+                quirks=(quirks or {}).get(node_id, NO_QUIRKS),
+                clock=clock,
             )
             for node_id in node_ids
         }

@@ -17,6 +17,7 @@ import signal
 import threading
 
 from drives.sim.drive import DriveModel, start_simulated_drives
+from drives.sim.quirks import DriveQuirks
 
 logger = logging.getLogger(__name__)
 
@@ -61,8 +62,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=defaults.sync_timeout_factor,
         help="SYNC-loss fault after this many 0x1006 periods without SYNC",
     )
-    parser.add_argument(
-        "--boot-delay-s", type=float, default=0.0, help="delay before the boot-up message (s)"
+    quirks = parser.add_argument_group(
+        "quirks", "behave like drives of other vendors (see drives.sim.quirks)"
+    )
+    quirks.add_argument(
+        "--boot-delay-s",
+        type=float,
+        default=0.0,
+        help="delay before the boot-up message, after power-on or an NMT reset (s)",
+    )
+    for flag, help_text in _QUIRK_FLAGS.items():
+        quirks.add_argument(f"--{flag.replace('_', '-')}", action="store_true", help=help_text)
+    quirks.add_argument(
+        "--sdo-delay-ms",
+        type=float,
+        nargs=2,
+        metavar=("SHORTEST", "LONGEST"),
+        default=(0.0, 0.0),
+        help="each SDO answer comes this long after its request (ms, uniform)",
+    )
+    quirks.add_argument(
+        "--late-tpdo-periods",
+        type=int,
+        default=0,
+        help="send each synchronous TPDO this many SYNCs after the one it answers",
     )
     parser.add_argument(
         "--log-level",
@@ -70,6 +93,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["DEBUG", "INFO", "WARNING", "ERROR"],
         help="logging level (default: INFO)",
     )
+
+
+#: Boolean quirks, as ``DriveQuirks`` field -> help text.
+_QUIRK_FLAGS = {
+    "no_optional_objects": "no 0x6066, 0x6007, 0x605A, 0x605E, 0x6065, 0x1016, 0x1017",
+    "fixed_pdo_mapping": "PDOs valid from power-on in a vendor layout, all read-only",
+    "interpolation_ms_only": "0x60C2:01 in 1..20 and 0x60C2:02 only -3",
+    "fault_at_power_on": "power on in FAULT (EMCY 0x8130 latched earlier)",
+    "guarding_only": "no heartbeat objects (0x1016, 0x1017): node guarding only",
+}
+
+
+def quirks_from_arguments(args: argparse.Namespace) -> DriveQuirks:
+    """The quirks the parsed options ask for.
+
+    :raises ValueError: on negative delays.
+    """
+    shortest_ms, longest_ms = args.sdo_delay_ms
+    return DriveQuirks(
+        **{flag: getattr(args, flag) for flag in _QUIRK_FLAGS},
+        sdo_delay_s=(shortest_ms / 1000.0, longest_ms / 1000.0),
+        boot_delay_s=args.boot_delay_s,
+        late_tpdo_periods=args.late_tpdo_periods,
+    )
+
+
+def quirk_arguments(quirks: DriveQuirks) -> list[str]:
+    """The options that give a drive process ``quirks`` (inverse of
+    :func:`quirks_from_arguments`)."""
+    arguments = [f"--{flag.replace('_', '-')}" for flag in _QUIRK_FLAGS if getattr(quirks, flag)]
+    shortest_s, longest_s = quirks.sdo_delay_s
+    if longest_s:
+        arguments += ["--sdo-delay-ms", f"{shortest_s * 1000:g}", f"{longest_s * 1000:g}"]
+    if quirks.boot_delay_s:
+        arguments += ["--boot-delay-s", f"{quirks.boot_delay_s:g}"]
+    if quirks.late_tpdo_periods:
+        arguments += ["--late-tpdo-periods", str(quirks.late_tpdo_periods)]
+    return arguments
 
 
 def run(args: argparse.Namespace) -> int:
@@ -102,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
             [args.node],
             model=model,
             bitrate=args.bitrate,
-            boot_delay_s=args.boot_delay_s,
+            quirks={args.node: quirks_from_arguments(args)},
         ) as drive_set:
             drive = drive_set.drives[args.node]
 

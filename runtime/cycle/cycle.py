@@ -61,6 +61,7 @@ FAULT_KINDS = {
     DriveFaultKind.EMCY: FaultKind.DRIVE_FAULT,
     DriveFaultKind.FAULT_STATE: FaultKind.DRIVE_FAULT,
     DriveFaultKind.HEARTBEAT_LOSS: FaultKind.HEARTBEAT_LOSS,
+    DriveFaultKind.GUARDING: FaultKind.HEARTBEAT_LOSS,
     DriveFaultKind.STALE_FEEDBACK: FaultKind.STALE_FEEDBACK,
     DriveFaultKind.FOLLOWING_ERROR: FaultKind.FOLLOWING_ERROR,
     DriveFaultKind.BOOT: FaultKind.BOOT_FAILURE,
@@ -328,7 +329,7 @@ class Cycle:
         in_position = not machine.moving and machine.state is not MachineState.DISABLED
         for i, (fb, target) in enumerate(zip(feedback, machine.targets, strict=True)):
             error = fb.following_error_mm
-            if abs(error) > self._windows_mm[i]:
+            if not abs(error) <= self._windows_mm[i]:  # NaN: not known yet, not in position
                 in_position = False
             if abs(error) > self._peak_errors_mm[i]:
                 self._peak_errors_mm[i] = abs(error)
@@ -346,7 +347,7 @@ class Cycle:
                 self._peak_errors_mm[i],
                 -1 if fb.state is None else int(fb.state),
                 fb.statusword,
-                int(fb.boot_phase),
+                int(fb.phase),
                 self._axis_fault_texts[i][:AXIS_FAULT_BYTES],
             )
         stats = self._statistics()

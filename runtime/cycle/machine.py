@@ -79,7 +79,7 @@ class AxisFeedbackLike(Protocol):
     node_id: int
     state: DriveState | None
     statusword: int
-    boot_phase: int
+    phase: int
     position_mm: float
     following_error_mm: float
     fault: DriveFault | None
@@ -333,6 +333,10 @@ class Machine:
             self._recovery_since_s = now_s
         healthy = all(fb.fault is None for fb in feedback)
         enabled = [fb.state is DriveState.OPERATION_ENABLED for fb in feedback]
+        if target is MachineState.STANDBY and not all(enabled):
+            # A drive still booting (or configured again after a restart) starts from a
+            # disable request: ask again until every drive is up.
+            self.drives.request_enable()
         if healthy and (all(enabled) if target is MachineState.STANDBY else not any(enabled)):
             self._recovery = None
             self.fault = None

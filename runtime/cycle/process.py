@@ -16,12 +16,11 @@ import logging
 import signal
 import sys
 
-from drives.bus import open_bus
 from drives.errors import DriveError
 from planner.braking import BrakingProfile
 from runtime.config import MachineConfig
 from runtime.cycle.cycle import Cycle
-from runtime.drives_setup import build_master
+from runtime.drives_setup import build_master, open_master_bus
 from runtime.logs import SharedLogHandler, quiet_libraries
 from runtime.processes import prepare_child
 from runtime.scheduler import CyclicTask
@@ -40,7 +39,7 @@ def cycle_main(config: MachineConfig, run_dir: str, log_level: str, parent_pid: 
     root.setLevel(log_level)
     quiet_libraries(log_level)
     try:
-        bus = open_bus(config.can.interface, config.can.channel, config.can.bitrate)
+        bus = open_master_bus(config)
     except DriveError as exc:
         logger.error("%s", exc)
         sys.exit(1)

@@ -3,8 +3,10 @@ Network, both on one python-can ``virtual`` channel per test."""
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import signal
+import struct
 import subprocess
 import sys
 import threading
@@ -19,7 +21,9 @@ import pytest
 from drives import emcy, objects
 from drives.cia402 import State, controlword_toward_enabled, decode_statusword
 from drives.objects import NmtState, build_drive_od
-from drives.sim import DriveModel, start_simulated_drives
+from drives.sim import DriveModel, DriveQuirks, start_simulated_drives
+from drives.sim.quirks import OPTIONAL_OBJECTS
+from drives.sim.service import add_arguments, quirk_arguments, quirks_from_arguments
 
 NODE = 3
 MASTER_NODE = 0x7F
@@ -46,7 +50,7 @@ class Bench:
     def __init__(
         self,
         model: DriveModel = PATIENT,
-        boot_delay_s: float = 0.0,
+        quirks: DriveQuirks = DriveQuirks(),  # noqa: B008  (frozen)
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         channel = f"sim-drive-{uuid.uuid4().hex}"
@@ -57,7 +61,7 @@ class Bench:
         self.frames: list[can.Message] = []
         self.master.notifier.add_listener(self.frames.append)
         self.drive_set = start_simulated_drives(
-            "virtual", channel, [NODE], model=model, boot_delay_s=boot_delay_s, clock=clock
+            "virtual", channel, [NODE], model=model, quirks={NODE: quirks}, clock=clock
         )
         self.drive = self.drive_set.drives[NODE]
         self.node = self.master.add_node(NODE, build_drive_od(NODE))
@@ -166,7 +170,7 @@ def test_boot_up_message_then_pre_operational(bench):
 
 
 def test_boot_delay_holds_back_boot_up_and_sdo():
-    bench = Bench(boot_delay_s=0.3)
+    bench = Bench(quirks=DriveQuirks(boot_delay_s=0.3))
     try:
         bench.node.sdo.RESPONSE_TIMEOUT = 0.05
         with pytest.raises(canopen.SdoCommunicationError):
@@ -557,8 +561,9 @@ def _delivered_ids(bench: Bench) -> set[int]:
 
 
 def test_bus_delivers_only_what_the_drive_subscribed_to(bench):
-    # NMT, SYNC, SDO request, and the LSS response that canopen's Network subscribes itself.
-    booted = {0x000, 0x080, 0x600 + NODE, 0x7E4}
+    # NMT, SYNC, SDO request, node guarding request, and the LSS response that canopen's
+    # Network subscribes itself.
+    booted = {0x000, 0x080, 0x600 + NODE, 0x700 + NODE, 0x7E4}
     assert _delivered_ids(bench) == booted
     bench.configure_pdos()
     assert _delivered_ids(bench) == booted | {0x200 + NODE}  # RPDO1
@@ -616,3 +621,173 @@ def test_sim_drive_process_runs_until_sigterm():
         if process.poll() is None:
             process.kill()
             process.wait()
+
+
+# -- quirks: drives of other vendors ---------------------------------------------------------
+
+
+def _quirky(**quirks: object) -> Bench:
+    return Bench(quirks=DriveQuirks(**quirks))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("index", sorted(OPTIONAL_OBJECTS))
+def test_no_optional_objects_aborts_with_object_does_not_exist(index):
+    bench = _quirky(no_optional_objects=True)
+    try:
+        subindex = 1 if index == objects.CONSUMER_HEARTBEAT else 0
+        with pytest.raises(canopen.SdoAbortedError) as error:
+            bench.node.sdo.upload(index, subindex)
+        assert error.value.code == 0x0602_0000
+        assert bench.node.sdo[objects.INTERPOLATION_PERIOD][1].raw == 4  # the rest is there
+    finally:
+        bench.close()
+
+
+def test_fixed_pdo_mapping_is_read_only_and_sent_in_its_layout():
+    bench = _quirky(fixed_pdo_mapping=True)
+    try:
+        sdo = bench.node.sdo
+        with pytest.raises(canopen.SdoAbortedError) as error:
+            sdo[objects.TPDO_MAP][0].raw = 0
+        assert error.value.code == 0x0601_0002
+        assert sdo[objects.TPDO_COMM][1].raw & 0x7FF == 0x280 + NODE
+        bench.node.nmt.send_command(objects.NmtCommand.START)
+        assert _wait_for(lambda: bench.drive.nmt_state is NmtState.OPERATIONAL)
+        bench.master.sync.transmit()
+        assert _wait_for(lambda: bench.frames_with_id(0x280 + NODE))
+        frame = bench.frames_with_id(0x280 + NODE)[0]
+        position, statusword = struct.unpack("<iH", bytes(frame.data))
+        assert statusword == bench.drive.statusword and position == 0
+        assert bench.frames_with_id(0x380 + NODE)  # TPDO2: 0x60F4, 0x603F
+    finally:
+        bench.close()
+
+
+@pytest.mark.parametrize(
+    ("subindex", "value", "abort_code"),
+    [(1, 21, 0x0609_0031), (1, 0, 0x0609_0032), (2, -4, 0x0609_0030)],
+)
+def test_interpolation_in_ms_only(subindex, value, abort_code):
+    bench = _quirky(interpolation_ms_only=True)
+    try:
+        period = bench.node.sdo[objects.INTERPOLATION_PERIOD]
+        with pytest.raises(canopen.SdoAbortedError) as error:
+            period[subindex].raw = value
+        assert error.value.code == abort_code
+        period[1].raw = 20
+        period[2].raw = -3
+        assert (period[1].raw, period[2].raw) == (20, -3)
+    finally:
+        bench.close()
+
+
+def test_fault_at_power_on_until_a_fault_reset():
+    bench = _quirky(fault_at_power_on=True)
+    try:
+        assert _wait_for(lambda: bench.drive.state is State.FAULT)
+        assert bench.node.sdo[objects.ERROR_CODE].raw == emcy.EMCY_HEARTBEAT
+        bench.node.sdo[objects.CONTROLWORD].raw = 0x00
+        bench.node.sdo[objects.CONTROLWORD].raw = 0x80
+        assert bench.drive.state is State.SWITCH_ON_DISABLED
+    finally:
+        bench.close()
+
+
+def _guard(bench: Bench) -> int:
+    """One node guarding request; return the answer byte."""
+    count = len(bench.frames_with_id(0x700 + NODE))
+    bench.master.bus.send(
+        can.Message(arbitration_id=0x700 + NODE, is_remote_frame=True, dlc=1, is_extended_id=False)
+    )
+    assert _wait_for(lambda: len(bench.frames_with_id(0x700 + NODE)) > count)
+    return bench.frames_with_id(0x700 + NODE)[-1].data[0]
+
+
+def test_guarding_only_answers_node_guarding_with_a_toggle_and_guards_its_life():
+    bench = _quirky(guarding_only=True)
+    try:
+        with pytest.raises(canopen.SdoAbortedError):
+            bench.node.sdo.upload(objects.PRODUCER_HEARTBEAT, 0)
+        assert _wait_for(lambda: bench.frames_with_id(0x700 + NODE))  # boot-up
+        answers = [_guard(bench) for _ in range(3)]
+        assert answers == [0x7F, 0xFF, 0x7F]  # PRE-OPERATIONAL, toggling
+        bench.node.sdo[objects.GUARD_TIME].raw = 20
+        bench.node.sdo[objects.LIFE_TIME_FACTOR].raw = 3
+        _guard(bench)
+        assert bench.wait_emcy(emcy.EMCY_HEARTBEAT)  # not guarded for 60 ms
+    finally:
+        bench.close()
+
+
+def test_a_drive_with_heartbeat_on_does_not_answer_guarding(bench):
+    bench.node.sdo[objects.PRODUCER_HEARTBEAT].raw = 1000
+    bench.frames.clear()
+    bench.master.bus.send(
+        can.Message(arbitration_id=0x700 + NODE, is_remote_frame=True, dlc=1, is_extended_id=False)
+    )
+    time.sleep(0.1)
+    assert [m for m in bench.frames_with_id(0x700 + NODE) if not m.is_remote_frame] == []
+
+
+def test_slow_sdo_answers_after_the_delay():
+    bench = _quirky(sdo_delay_s=(0.15, 0.2))
+    try:
+        bench.node.sdo.RESPONSE_TIMEOUT = 1.0
+        started = time.monotonic()
+        assert bench.node.sdo[objects.DEVICE_TYPE].raw == objects.DEVICE_TYPE_SERVO_402
+        assert 0.15 <= time.monotonic() - started < 0.6
+    finally:
+        bench.close()
+
+
+def test_late_tpdos_carry_the_state_of_an_earlier_sync():
+    bench = _quirky(late_tpdo_periods=2)
+    try:
+        bench.configure_pdos()
+        bench.start()
+        for controlword in (0x06, 0x07, 0x0F, 0x0F, 0x0F):
+            bench.node.rpdo[1][objects.CONTROLWORD].raw = controlword
+            bench.node.rpdo[1][objects.TARGET_POSITION].raw = 0
+            bench.node.rpdo[1].transmit()
+            bench.master.sync.transmit()
+            bench.node.sdo.upload(objects.STATUSWORD, 0)  # the SYNC has been handled
+        assert bench.drive.state is State.OPERATION_ENABLED
+        _wait_for(lambda: len(bench.tpdo1) >= 3)
+        states = [decode_statusword(sw) for sw, _ in bench.tpdo1]
+        # Five SYNCs, three TPDOs: the first two SYNCs' answers went out at SYNCs 3 and 4.
+        assert states[:2] == [State.READY_TO_SWITCH_ON, State.SWITCHED_ON]
+    finally:
+        bench.close()
+
+
+def test_sync_of_the_wrong_length_is_not_used_and_raises_8240(bench):
+    bench.configure_pdos()
+    bench.start()
+    bench.master.send_message(0x080, b"\x01")  # a counter the drive was not told of (0x1019 = 0)
+    assert bench.wait_emcy(emcy.EMCY_SYNC_LENGTH)
+    assert not bench.tpdo1
+    with pytest.raises(canopen.SdoAbortedError) as error:
+        bench.node.sdo[objects.SYNC_COUNTER_OVERFLOW].raw = 16  # while 0x1006 != 0
+    assert error.value.code == 0x0800_0022
+    bench.node.sdo[objects.COMM_CYCLE_PERIOD].raw = 0
+    bench.node.sdo[objects.SYNC_COUNTER_OVERFLOW].raw = 16
+    bench.master.send_message(0x080, b"\x01")
+    assert _wait_for(lambda: bench.tpdo1)
+
+
+def test_quirk_options_of_the_sim_drive_process_round_trip():
+    quirks = DriveQuirks(
+        no_optional_objects=True,
+        fixed_pdo_mapping=True,
+        interpolation_ms_only=True,
+        fault_at_power_on=True,
+        guarding_only=True,
+        sdo_delay_s=(0.15, 0.4),
+        boot_delay_s=6.0,
+        late_tpdo_periods=2,
+    )
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--node", "3", *quirk_arguments(quirks)])
+    assert quirks_from_arguments(args) == quirks
+    assert quirks_from_arguments(parser.parse_args(["--node", "3"])) == DriveQuirks()

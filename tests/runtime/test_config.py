@@ -10,9 +10,13 @@ from typing import Any
 import pytest
 import yaml
 
+from drives.boot import Supervision
+from drives.pdo import AxisPdoSpec, MappingPolicy, PdoSpec
+from drives.sim.quirks import DriveQuirks
 from runtime.config import (
     DEFAULT_CONFIG_PATH,
     DEMO_CURVE_PATH,
+    CanConfig,
     MachineConfig,
     load_config,
     parse_config,
@@ -208,8 +212,88 @@ CASES = [
         "axes[0].speed",
         7,
         "config: axes[0].speed = 7: expected a known key (one of amax_mm_s2, counts_per_mm, "
-        "direction, eds, following_error_timeout_ms, following_error_window_mm, mode, name, "
-        "node_id, travel_mm, vmax_mm_s)",
+        "direction, eds, feedback_lag_periods, following_error_timeout_ms, "
+        "following_error_window_mm, guard_time_ms, life_time_factor, mode, name, node_id, pdo, "
+        "supervision, travel_mm, vmax_mm_s)",
+    ),
+    ("can.sdo_retries", -1, "config: can.sdo_retries = -1: expected a value in 0..10"),
+    ("can.sdo_timeout_s", 0, "config: can.sdo_timeout_s = 0: expected a number > 0"),
+    (
+        "can.sync_counter_overflow",
+        1,
+        "config: can.sync_counter_overflow = 1: expected 0 or a value in 2..240",
+    ),
+    (
+        "can.sync_counter_overflow",
+        241,
+        "config: can.sync_counter_overflow = 241: expected a value in 0..240",
+    ),
+    (
+        "can.reset_communication",
+        "yes",
+        "config: can.reset_communication = 'yes': expected true or false",
+    ),
+    ("can.shutdown_timeout_s", 0, "config: can.shutdown_timeout_s = 0: expected a number > 0"),
+    (
+        "axes[0].supervision",
+        "both",
+        "config: axes[0].supervision = 'both': expected one of heartbeat, guarding",
+    ),
+    ("axes[0].guard_time_ms", 0, "config: axes[0].guard_time_ms = 0: expected a value in 1..65535"),
+    (
+        "axes[0].life_time_factor",
+        256,
+        "config: axes[0].life_time_factor = 256: expected a value in 1..255",
+    ),
+    (
+        "axes[0].feedback_lag_periods",
+        -1,
+        "config: axes[0].feedback_lag_periods = -1: expected a value in 0..100",
+    ),
+    (
+        "axes[0].pdo.mapping",
+        "rewrite",
+        "config: axes[0].pdo.mapping = 'rewrite': expected one of auto, write, keep",
+    ),
+    (
+        "axes[0].pdo.rpdo.objects",
+        [0x6040],
+        "config: axes[0].pdo = {'rpdo': {'objects': [24640]}}: expected RPDO: 0x607A target "
+        "position is required",
+    ),
+    (
+        "axes[0].pdo.tpdo",
+        [{"number": 1, "objects": [0x6041, 0x6064, 0x60F4]}],
+        "config: axes[0].pdo.tpdo[0].objects = [24641, 24676, 24820]: expected PDO 1: objects "
+        "take 10 bytes, at most 8 fit a frame",
+    ),
+    (
+        "axes[0].pdo.tpdo",
+        [{"objects": [0x6041, 0x6064]}],
+        "config: axes[0].pdo.tpdo[0].number = None: expected an integer",
+    ),
+    (
+        "axes[0].pdo.rpdo.cob_id",
+        0x800,
+        "config: axes[0].pdo.rpdo.cob_id = 2048: expected a value in 1..2047",
+    ),
+    (
+        "simulation.quirks",
+        {"W": {}},
+        "config: simulation.quirks.W = 'W': expected the name of an axis (X, Y, Z)",
+    ),
+    (
+        "simulation.quirks",
+        {"X": {"sdo_delay_ms": [400, 150]}},
+        "config: simulation.quirks.X.sdo_delay_ms = [400, 150]: expected [shortest, longest] "
+        "in ms, >= 0",
+    ),
+    (
+        "simulation.quirks",
+        {"X": {"late_boot": True}},
+        "config: simulation.quirks.X.late_boot = True: expected a known key (one of "
+        "boot_delay_s, fault_at_power_on, fixed_pdo_mapping, guarding_only, "
+        "interpolation_ms_only, late_tpdo_periods, no_optional_objects, sdo_delay_ms)",
     ),
     ("axes[2].node_id", 1, "config: axes[2].node_id = 1: expected a node id not used by axes[0]"),
     (
@@ -291,6 +375,55 @@ def test_rejected_with_message(key_path: str, value: Any, message: str) -> None:
         parse_config(doc)
     assert str(info.value) == message
     assert info.value.key_path == message.split(" = ")[0].removeprefix("config: ")
+
+
+def test_pdo_objects_must_be_process_data_of_csp() -> None:
+    doc = sim_document()
+    doc["axes"][0]["pdo"] = {"tpdo": [{"number": 1, "objects": [0x6041, 0x6077]}]}
+    with pytest.raises(ConfigError) as info:
+        parse_config(doc)
+    assert str(info.value).startswith(
+        "config: axes[0].pdo.tpdo[0].objects[1] = 24695: expected one of 0x603F error code, "
+        "0x6040 controlword, 0x6041 statusword"
+    )
+
+
+def test_drive_keys_reach_the_master_and_the_simulated_drives() -> None:
+    doc = sim_document()
+    doc["can"].update(sdo_timeout_s=1.5, sdo_retries=3, sync_counter_overflow=16)
+    doc["axes"][1].update(
+        supervision="guarding",
+        guard_time_ms=50,
+        life_time_factor=4,
+        feedback_lag_periods=2,
+        pdo={
+            "mapping": "keep",
+            "rpdo": {"number": 2, "cob_id": 0x301, "objects": [0x6040, 0x607A, 0x6060]},
+            "tpdo": [
+                {"number": 1, "objects": [0x6041, 0x6064]},
+                {"number": 2, "objects": [0x60F4, 0x603F]},
+            ],
+        },
+    )
+    doc["simulation"]["quirks"] = {
+        "Y": {"guarding_only": True, "sdo_delay_ms": [150, 400], "late_tpdo_periods": 1}
+    }
+    config = parse_config(doc)
+    assert (config.can.sdo_timeout_s, config.can.sdo_retries) == (1.5, 3)
+    assert config.can.sync_counter_overflow == 16 and config.can.reset_communication
+    y = config.axes[1]
+    assert y.supervision is Supervision.GUARDING
+    assert (y.guard_time_ms, y.life_time_factor, y.feedback_lag_periods) == (50, 4, 2)
+    assert y.pdo == AxisPdoSpec(
+        MappingPolicy.KEEP,
+        PdoSpec(2, (0x6040, 0x607A, 0x6060), 0x301),
+        (PdoSpec(1, (0x6041, 0x6064)), PdoSpec(2, (0x60F4, 0x603F))),
+    )
+    assert config.axes[0].pdo == AxisPdoSpec()
+    assert config.simulation.quirks == {
+        "Y": DriveQuirks(guarding_only=True, sdo_delay_s=(0.15, 0.4), late_tpdo_periods=1)
+    }
+    assert CanConfig().sdo_timeout_s == 1.0 and CanConfig().sdo_retries == 2
 
 
 def test_more_than_three_axes_rejected() -> None:

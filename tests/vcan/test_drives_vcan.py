@@ -1,7 +1,8 @@
-"""The drive scenarios of ``tests/drives/scenarios.py`` on SocketCAN vcan0, one process per drive.
+"""The drive scenarios of ``tests/drive_scenarios.py`` on SocketCAN vcan0, one process per drive.
 
 Each simulated drive runs as ``python -m drives.sim --node N --interface socketcan --channel
-vcan0``, so master and drives talk only through the kernel's CAN layer. A drive is silenced with
+vcan0`` with its quirks as options, so master and drives talk only through the kernel's CAN
+layer. A drive is silenced with
 SIGSTOP (like a cut cable: no heartbeat, no TPDO) and faulted with SIGUSR1, which the drive process
 turns into ``SimulatedDrive.inject_fault()`` (EMCY 0x4210).
 
@@ -20,12 +21,14 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import can
 from drive_scenarios import DriveScenarios
 
 from drives.bus import open_bus
+from drives.sim import DriveQuirks
+from drives.sim.service import quirk_arguments
 
 CHANNEL = "vcan0"
 IN_VM = os.environ.get("SOFTMOTION_VCAN_VM") == "1"
@@ -38,7 +41,9 @@ EXIT_TIMEOUT_S = 10.0
 class ProcessDrives:
     """One ``python -m drives.sim`` process per node on SocketCAN."""
 
-    def __init__(self, channel: str, node_ids: Sequence[int]) -> None:
+    def __init__(
+        self, channel: str, node_ids: Sequence[int], quirks: Mapping[int, DriveQuirks]
+    ) -> None:
         self.processes: dict[int, subprocess.Popen[bytes]] = {}
         try:
             for node_id in node_ids:
@@ -57,6 +62,7 @@ class ProcessDrives:
                         str(SYNC_TIMEOUT_FACTOR),
                         "--log-level",
                         "WARNING",
+                        *quirk_arguments(quirks.get(node_id, DriveQuirks())),
                     ]
                 )
         except BaseException:
@@ -98,8 +104,10 @@ class TestDrivesVcan(DriveScenarios):
     def make_channel(self) -> str:
         return CHANNEL
 
-    def open_bus(self, channel: str) -> can.BusABC:
-        return open_bus("socketcan", channel)
+    def open_bus(self, channel: str, **options: object) -> can.BusABC:
+        return open_bus("socketcan", channel, **options)
 
-    def launch_drives(self, channel: str, node_ids: Sequence[int]) -> ProcessDrives:
-        return ProcessDrives(channel, node_ids)
+    def launch_drives(
+        self, channel: str, node_ids: Sequence[int], quirks: Mapping[int, DriveQuirks]
+    ) -> ProcessDrives:
+        return ProcessDrives(channel, node_ids, quirks)
