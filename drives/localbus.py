@@ -47,6 +47,8 @@ _SEQUENCE = itertools.count(1)
 #: fcntl command to resize a pipe (Linux; missing from Python's fcntl before 3.10's constants).
 F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 PIPE_BYTES = 1 << 20
+#: Longest time before a bus sends to a bus that joined the channel [s].
+PEER_CHECK_S = 0.02
 
 
 def channel_directory(channel: str) -> Path:
@@ -86,6 +88,7 @@ class LocalBus(can.BusABC):
         self._writers: dict[str, int] = {}
         self._peers: list[str] = []
         self._peers_stamp = -1
+        self._next_peer_check_s = 0.0
         self.frames_dropped = 0
         super().__init__(channel=channel, can_filters=can_filters, **kwargs)
 
@@ -171,7 +174,13 @@ class LocalBus(can.BusABC):
         os.close(self._fifo)
 
     def _refresh_peers(self) -> None:
-        # Creating or removing a pipe changes the directory's mtime: list it again only then.
+        # Creating or removing a pipe changes the directory's mtime: list it again only then,
+        # and look at the mtime at most every PEER_CHECK_S (a joining bus, like a node powering
+        # up, misses what is sent before it is seen).
+        now_s = time.monotonic()
+        if now_s < self._next_peer_check_s:
+            return
+        self._next_peer_check_s = now_s + PEER_CHECK_S
         stamp = os.stat(self._directory).st_mtime_ns
         if stamp == self._peers_stamp:
             return

@@ -21,7 +21,8 @@ plan keep the stream smooth:
 - Underrun: while following a plan, the rows planned ahead must always cover the braking time
   from the current feed and acceleration plus :data:`UNDERRUN_MARGIN_PERIODS`; when they no longer
   do (the planner fell behind), :meth:`take` reports UNDERRUN once, and the machine stops on the
-  rows it still has.
+  rows it still has. At rest (the end of the approach, a sharp corner) nothing needs braking:
+  the setpoint waits for the next rows, up to :data:`REST_WAIT_LIMIT_S`.
 
 Units: mm, mm/s, mm/s², periods. Threading: the cycle process's single thread; every call is
 O(1) (a braking step advances a cursor over rows it passes once). Nothing here blocks or
@@ -49,6 +50,9 @@ from runtime.shared import (
 
 #: Rows beyond the braking time the planner must keep ahead while moving.
 UNDERRUN_MARGIN_PERIODS = 2
+#: At rest between two segments the feed waits this long for the next rows before it calls the
+#: planner behind [s].
+REST_WAIT_LIMIT_S = 10.0
 
 
 class FeedMode(Enum):
@@ -144,6 +148,8 @@ class SetpointFeed:
         self._accepted = False
         self._underrun_reported = False
         self._failure_seen = 0
+        self._waiting_periods = 0
+        self._rest_wait_limit = math.ceil(REST_WAIT_LIMIT_S / period_s)
         # Braking.
         self._braking: BrakingProfile | None = None
         self._braking_s0 = 0.0
@@ -324,8 +330,14 @@ class SetpointFeed:
     def _take_planned(self) -> FeedEvent:
         row = self._next_row
         if row >= self._available_end():
+            if self._at_rest() and self._waiting_periods < self._rest_wait_limit:
+                # At rest between two segments (or at a corner): nothing to brake, the
+                # setpoint stays where it is until the next rows come.
+                self._waiting_periods += 1
+                return FeedEvent.NONE
             self.problem = "planner behind: no setpoint planned for this period"
             return self._underrun()
+        self._waiting_periods = 0
         switch = self._switch
         if switch is not None and row >= switch.at_row:
             self._ring = switch.ring
@@ -342,8 +354,12 @@ class SetpointFeed:
             return FeedEvent.FINISHED
         return self._check_underrun()
 
+    def _at_rest(self) -> bool:
+        now = self.current
+        return now.feed_mm_s == 0.0 and now.accel_mm_s2 == 0.0
+
     def _check_underrun(self) -> FeedEvent:
-        if self._underrun_reported or self._job_complete():
+        if self._underrun_reported or self._at_rest() or self._job_complete():
             return FeedEvent.NONE
         now = self.current
         braking = BrakingProfile.from_state(

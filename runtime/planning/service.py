@@ -129,7 +129,7 @@ class PlannerService:
             return False
         try:
             if job.offer is not None:
-                return self._await_answer(job)
+                return self._await_answer(job) or self._extend_offered(job)
             if job.splice_override is not None and self._cycle_reads(job.ring):
                 return self._splice(job)
             return self._extend(job)
@@ -243,6 +243,18 @@ class PlannerService:
         job.ring = offer.ring
         if offer.at_row > 0:
             self._commit_splice(job)
+        return True
+
+    def _extend_offered(self, job: _Job) -> bool:
+        """While the cycle has not answered, plan on the rows offered (the cycle reads them only
+        once it accepts; refused, they are dropped): the more rows ahead at the switch, the
+        longer the planner may fall behind afterwards."""
+        offered = job.candidate or job
+        ring = self._shared.rings[offered.ring]
+        ahead = ring.write_count - ring.first_row
+        if offered.done or ahead >= self.buffer_high_periods or ring.room() < self.block_periods:
+            return False
+        self._write_block(offered, ring)
         return True
 
     def _cycle_reads(self, ring: int) -> bool:
