@@ -40,6 +40,11 @@ def simulation_main(config: MachineConfig, log_level: str, parent_pid: int) -> N
             [axis.node_id for axis in config.axes],
             model=DriveModel(sync_timeout_factor=simulated_sync_timeout_periods(config)),
             bitrate=config.can.bitrate,
+            quirks={
+                axis.node_id: config.simulation.quirks[axis.name]
+                for axis in config.axes
+                if axis.name in config.simulation.quirks
+            },
         )
         with drives:
             while not stop.wait(0.5):

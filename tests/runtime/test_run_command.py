@@ -103,3 +103,20 @@ def test_version_and_help() -> None:
     helped = subprocess.run(softmotion("--help"), cwd=ROOT, capture_output=True, text=True)
     for command in ("run", "plan", "hmi", "sim-drive"):
         assert command in helped.stdout
+
+
+def test_demo_with_a_drive_faulted_at_power_on_says_so_and_exits_1(tmp_path: Path) -> None:
+    path = machine_config(tmp_path)
+    document = yaml.safe_load(path.read_text())
+    document["simulation"]["quirks"] = {"Y": {"fault_at_power_on": True}}
+    path.write_text(yaml.safe_dump(document))
+    done = subprocess.run(
+        softmotion("run", "--config", str(path), "--demo"),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert "softmotion: drives not enabled: error stop: axis Y: drive in FAULT" in done.stderr

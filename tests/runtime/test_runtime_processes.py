@@ -8,6 +8,7 @@ stops the machine on the path and is started again; a killed cycle ends the runt
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
 import time
@@ -20,9 +21,11 @@ from bus_recorder import BusRecorder
 from machine_harness import PAPER, sim_config
 from setpoint_checks import differences, realised_feed
 
+from drives.sim.quirks import DriveQuirks
 from runtime.commands import CommandCode
 from runtime.config import MachineConfig
 from runtime.curves import load_curve_file
+from runtime.simulation import simulation_main
 from runtime.status import FaultKind, MachineState, MotionPhase
 from runtime.supervisor import CycleDied, Runtime
 
@@ -159,3 +162,45 @@ def test_killed_cycle_ends_the_runtime_with_a_clear_message(runtime: Runtime) ->
     runtime.stop()
     for name in ("planner", "simulated-drives"):
         assert not runtime.process(name).is_alive()
+
+
+def test_a_drive_faulted_at_power_on_is_an_error_stop_and_reset_brings_it_up() -> None:
+    config = local_config()
+    simulation = replace(config.simulation, quirks={"Y": DriveQuirks(fault_at_power_on=True)})
+    with Runtime(replace(config, simulation=simulation), log_level="WARNING") as runtime:
+        status = runtime.wait_for(lambda s: s.state is MachineState.ERROR_STOP, 15.0)
+        assert status.fault.axis == "Y" and "drive in FAULT" in status.fault.text
+        runtime.command(CommandCode.RESET)
+        runtime.wait_for(lambda s: s.state is MachineState.DISABLED and s.fault is None, 10.0)
+        program = load_enable(runtime)
+        runtime.command(CommandCode.START)
+        run_to_standby(runtime)
+        assert runtime.status().axes[2].commanded_mm == program.end_mm[2]
+
+
+def test_a_second_start_after_a_clean_shutdown_finds_every_drive_healthy() -> None:
+    """The drives outlive the runtime (a process of their own here, hardware on a machine):
+    the shutdown must leave none supervising a master that is gone, so none raises an EMCY
+    (0x8130 heartbeat loss) afterwards, and the next start enables them all."""
+    config = local_config()
+    context = multiprocessing.get_context("spawn")
+    drives = context.Process(target=simulation_main, args=(config, "WARNING", os.getpid()))
+    drives.start()
+    config = replace(config, simulation=replace(config.simulation, drives=False))
+    emcy_ids = {0x80 + axis.node_id for axis in config.axes}
+    try:
+        with BusRecorder(config.can.interface, config.can.channel) as recorder:
+            for _ in range(2):
+                with Runtime(config, log_level="WARNING") as runtime:
+                    load_enable(runtime)
+                    runtime.command(CommandCode.START)
+                    run_to_standby(runtime)
+                left = len(recorder.frames)
+                # Longer than the heartbeat the drives consumed (2.5 x 100 ms).
+                time.sleep(0.6)
+                after = recorder.frames[left:]
+                errors = [f for f in after if f.can_id in emcy_ids and f.data[:2] != b"\0\0"]
+                assert errors == []
+    finally:
+        drives.terminate()
+        drives.join(10)
