@@ -362,8 +362,10 @@ class Machine:
         self.feed.rest_at(self._actual)
         if all(fb.state not in stopping for fb in feedback):
             self._quick_stopping = False
-            self._power_on = False
             if self.state is MachineState.STOPPING:
+                # The operator's quick stop ends with the power off; a fault's keeps the
+                # operator's wish, so the reset enables the drives again.
+                self._power_on = False
                 self._enter(MachineState.DISABLED, "quick stop done, drives disabled")
 
     def _on_feed_event(self, event: FeedEvent, now_s: float) -> None:

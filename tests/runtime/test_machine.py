@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from machine_harness import Harness, sim_config
 
+from drives.cia402 import State
 from runtime.commands import ALLOWED, CommandCode, CommandOrigin, CommandResult
 from runtime.status import FaultKind, MachineState, MotionPhase, WatchdogState
 
@@ -314,6 +315,10 @@ def test_axis_fault_with_quick_stop_reaction_quick_stops_every_drive(h: Harness)
     h.period()
     assert h.status.state is MachineState.ERROR_STOP
     assert h.drives.requests[-1] == "quick_stop"
+    h.until(lambda s: all(a.drive_state != State.OPERATION_ENABLED for a in s.axes), 20)
+    # The reset enables the drives again: the quick stop was the fault's, not the operator's.
+    assert h.command(CommandCode.RESET) is CommandResult.DONE
+    h.until(lambda s: s.state is MachineState.STANDBY, 50)
 
 
 def test_later_faults_are_listed_after_the_first(tmp_path: Path) -> None:
