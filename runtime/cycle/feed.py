@@ -21,8 +21,9 @@ plan keep the stream smooth:
 - Underrun: while following a plan, the rows planned ahead must always cover the braking time
   from the current feed and acceleration plus :data:`UNDERRUN_MARGIN_PERIODS`; when they no longer
   do (the planner fell behind), :meth:`take` reports UNDERRUN once, and the machine stops on the
-  rows it still has. At rest (the end of the approach, a sharp corner) nothing needs braking:
-  the setpoint waits for the next rows, up to :data:`REST_WAIT_LIMIT_S`.
+  rows it still has. Rows that end at rest (the end of a segment) need nothing beyond them; at
+  rest (the end of the approach, a sharp corner) nothing needs braking: the setpoint waits for
+  the next rows, up to :data:`REST_WAIT_LIMIT_S`.
 
 Units: mm, mm/s, mm/s², periods. Threading: the cycle process's single thread; every call is
 O(1) (a braking step advances a cursor over rows it passes once). Nothing here blocks or
@@ -315,12 +316,20 @@ class SetpointFeed:
             return self._rings[switch.ring].write_count
         return self._rings[self._ring].write_count
 
-    def _job_complete(self) -> bool:
+    def _last_row_flags(self) -> int:
         end = self._available_end()
         if end <= 0:
-            return False
+            return 0
         ring = self._ring_of(end - 1)
-        return bool(ring.flags[ring.slot(end - 1)] & RowFlag.LAST_OF_JOB)
+        return int(ring.flags[ring.slot(end - 1)])
+
+    def _job_complete(self) -> bool:
+        return bool(self._last_row_flags() & RowFlag.LAST_OF_JOB)
+
+    def _rows_end_at_rest(self) -> bool:
+        """Whether the rows planned ahead end at rest (a segment's end): the plan itself stops
+        there, so a stop from now never needs more rows than there are."""
+        return bool(self._last_row_flags() & RowFlag.LAST_OF_SEGMENT)
 
     def _started(self) -> bool:
         if not self._first_offer_taken:
@@ -359,7 +368,7 @@ class SetpointFeed:
         return now.feed_mm_s == 0.0 and now.accel_mm_s2 == 0.0
 
     def _check_underrun(self) -> FeedEvent:
-        if self._underrun_reported or self._at_rest() or self._job_complete():
+        if self._underrun_reported or self._at_rest() or self._rows_end_at_rest():
             return FeedEvent.NONE
         now = self.current
         braking = BrakingProfile.from_state(

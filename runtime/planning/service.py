@@ -25,12 +25,14 @@ cycle published and tries again next poll).
 from __future__ import annotations
 
 import logging
+import math
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
+from planner.braking import BrakingProfile
 from planner.errors import PlannerError
 from planner.nurbs import NurbsCurve
 from planner.stream import Path, stream_setpoints
@@ -56,6 +58,8 @@ logger = logging.getLogger(__name__)
 PATH_CACHE_SIZE = 4
 #: Lead of the second try of a splice the cycle refused, periods (then it doubles).
 SPLICE_RETRY_MIN_PERIODS = 2
+#: A splice is offered with rows for its stop plus this many periods of planning time.
+SPLICE_SLACK_PERIODS = 25
 
 
 @dataclass(eq=False)
@@ -350,10 +354,27 @@ class PlannerService:
             override_percent=override,
         )
         spliced.pending_state = (segment, state)
-        self._write_block(spliced, other)
+        # Offered once its rows cover a stop from where it begins, and the time to plan more:
+        # the cycle takes them from two periods on, and calls the planner behind when the rows
+        # ahead no longer cover its braking.
+        cover = self._rows_to_stop(state) + SPLICE_SLACK_PERIODS
+        while other.write_count - other.first_row < cover:
+            self._write_block(spliced, other)
+            if spliced.done or spliced.pending_state is not None:
+                break  # its rows end at rest: nothing to cover beyond them
         job.candidate = spliced
         self._offer(job, other_index, row + 1)
         return True
+
+    def _rows_to_stop(self, state: MotionState) -> int:
+        """Periods a jerk-limited stop from ``state`` takes."""
+        braking = BrakingProfile.from_state(
+            v0_mm_s=state.v_mm_s,
+            a0_mm_s2=state.a_mm_s2,
+            amax_mm_s2=self._limits.amax_mm_s2,
+            jmax_mm_s3=self._limits.jmax_mm_s3,
+        )
+        return math.ceil(braking.duration_s / self._period_s)
 
     def _extend_for_splice(self, job: _Job, ring: SetpointRing) -> bool:
         """The splice row is not planned yet: the old plan goes on meanwhile."""
