@@ -14,7 +14,9 @@ unless the host raised it.)
 Frames carry the time the sender handed them to the bus (``time.time()``, as the timestamps of
 python-can's SocketCAN and virtual buses), standing for the time the frame was on the wire:
 a receiver that reads late still sees when the frame was sent. With ``receive_own_messages``
-a bus also receives its own frames, through its pipe, in order with the others.
+a bus also receives its own frames (``is_rx`` False, as python-can marks them), through its pipe,
+in order with the others. :meth:`LocalBus.send_frames` sends several frames in one write per
+receiver: the cycle hands a period's RPDOs and its SYNC over at once.
 
 Units: seconds (timestamps). Threading: one bus per thread, like python-can's buses; ``recv``
 blocks at most its timeout, ``send`` never blocks.
@@ -35,6 +37,7 @@ import select
 import struct
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +45,9 @@ import can
 
 #: timestamp (s), arbitration id, DLC, flags, data.
 FRAME = struct.Struct("<dIBB8s")
-_EXTENDED, _REMOTE, _ERROR = 1, 2, 4
+_EXTENDED, _REMOTE, _ERROR, _OWN = 1, 2, 4, 8
+#: Frames one write may carry (a pipe write of up to PIPE_BUF bytes is never interleaved).
+MAX_FRAMES_PER_WRITE = select.PIPE_BUF // FRAME.size
 _SEQUENCE = itertools.count(1)
 #: fcntl command to resize a pipe (Linux; missing from Python's fcntl before 3.10's constants).
 F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
@@ -97,19 +102,26 @@ class LocalBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send ``msg`` to every other bus on the channel (never blocks)."""
-        flags = (
-            (_EXTENDED if msg.is_extended_id else 0)
-            | (_REMOTE if msg.is_remote_frame else 0)
-            | (_ERROR if msg.is_error_frame else 0)
-        )
-        frame = FRAME.pack(
-            time.time(), msg.arbitration_id, msg.dlc, flags, bytes(msg.data or b"")[:8]
-        )
+        self.send_frames((msg,))
+
+    def send_frames(self, messages: Sequence[can.Message]) -> None:
+        """Send ``messages`` back to back, one write per receiving bus (never blocks).
+
+        At most :data:`MAX_FRAMES_PER_WRITE` at once: one write stays atomic in a pipe. A
+        receiver whose pipe has no room for them all loses them all (counted per frame).
+
+        :raises ValueError: for more than :data:`MAX_FRAMES_PER_WRITE` frames.
+        """
+        if len(messages) > MAX_FRAMES_PER_WRITE:
+            raise ValueError(f"{len(messages)} frames, at most {MAX_FRAMES_PER_WRITE} at once")
+        stamp = time.time()
+        frames = b"".join(_pack(message, stamp, 0) for message in messages)
+        own = b"".join(_pack(message, stamp, _OWN) for message in messages) if self._own else b""
         self._refresh_peers()
         for peer in self._peers:
             if peer == self._address:
-                if self._own:
-                    self._write(self._fifo, frame)
+                if own:
+                    self._write(self._fifo, own, len(messages))
                 continue
             fd = self._writers.get(peer)
             if fd is None:
@@ -117,15 +129,15 @@ class LocalBus(can.BusABC):
                 if fd is None:
                     continue
             try:
-                self._write(fd, frame)
+                self._write(fd, frames, len(messages))
             except BrokenPipeError:
                 self._forget(peer)
 
-    def _write(self, fd: int, frame: bytes) -> None:
+    def _write(self, fd: int, frames: bytes, count: int) -> None:
         try:
-            os.write(fd, frame)
+            os.write(fd, frames)
         except BlockingIOError:
-            self.frames_dropped += 1
+            self.frames_dropped += count
 
     def _open_peer(self, peer: str) -> int | None:
         try:
@@ -157,6 +169,7 @@ class LocalBus(can.BusABC):
             is_extended_id=bool(flags & _EXTENDED),
             is_remote_frame=bool(flags & _REMOTE),
             is_error_frame=bool(flags & _ERROR),
+            is_rx=not flags & _OWN,
             dlc=dlc,
             data=None if flags & _REMOTE else data[: min(dlc, 8)],
             channel=self.channel,
@@ -197,6 +210,17 @@ class LocalBus(can.BusABC):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(peer)
         self._peers = [p for p in self._peers if p != peer]
+
+
+def _pack(message: can.Message, stamp: float, own: int) -> bytes:
+    flags = (
+        (_EXTENDED if message.is_extended_id else 0)
+        | (_REMOTE if message.is_remote_frame else 0)
+        | (_ERROR if message.is_error_frame else 0)
+        | own
+    )
+    data = bytes(message.data or b"")[:8]
+    return FRAME.pack(stamp, message.arbitration_id, message.dlc, flags, data)
 
 
 def _enlarge(fd: int) -> None:

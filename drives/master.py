@@ -362,6 +362,7 @@ class Cia402Master:
         self._axes = tuple(self._add_axis(spec) for spec in axes)
         self._by_name = {axis.spec.name: axis for axis in self._axes}
         self._sending: list[_Axis] = []
+        self._period_frames: list[can.Message] = []
         self._started = False
         self._shutdown = _ShutdownStep.RUNNING
         self._shutdown_deadline_s: float | None = None
@@ -454,13 +455,29 @@ class Cia402Master:
     # -- the period ---------------------------------------------------------------------------
 
     def transmit_period(self) -> None:
-        """Send the prepared RPDO of every started drive, then the SYNC."""
+        """Send the prepared RPDO of every started drive, then the SYNC.
+
+        A bus that takes several frames in one call (``send_frames``, the ``local`` bus) gets
+        them so: the SYNC then leaves as soon after the wake-up as a single frame would.
+        """
         slot = (self._sync.sent + 1) % self._history
-        send = self._send
+        frames = self._period_frames
+        frames.clear()
         for axis in self._sending:
             axis.sent_counts[slot] = axis.prepared_counts
-            send(axis.rpdo_message)
-        self._sync.transmit()
+            frames.append(axis.rpdo_message)
+        frames.append(self._sync.next_message())
+        send_frames = getattr(self.bus, "send_frames", None)
+        if send_frames is None:
+            for frame in frames:
+                self._send(frame)
+            return
+        try:
+            send_frames(frames)
+        except can.CanError as exc:
+            self._send_errors += 1
+            if self._send_errors == 1:
+                logger.warning("CAN send of the period's frames failed: %s", exc)
 
     def receive(self, now_s: float) -> int:
         """Drain the bus without waiting and dispatch every frame; return how many.

@@ -93,6 +93,11 @@ class SyncProducer:
 
     def transmit(self) -> None:
         """Send the next SYNC (with its counter when configured) and note its time."""
+        self._send(self.next_message())
+
+    def next_message(self) -> can.Message:
+        """The next SYNC, counted and timed as sent now: the caller sends it at once (with
+        other frames, on a bus that takes several in one call)."""
         number = self.sent + 1
         slot = number % self.history
         self._echo_stamps[slot] = math.inf
@@ -100,7 +105,7 @@ class SyncProducer:
             self._message.data[0] = self.counter(number)
         self._sent_stamps[slot] = self._wall_clock()
         self.sent = number
-        self._send(self._message)
+        return self._message
 
     def on_echo(self, message: can.Message) -> None:
         """Our own SYNC received back from the bus: note its bus time (and its place in the

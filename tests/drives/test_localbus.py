@@ -105,3 +105,21 @@ def test_a_bus_whose_process_died_is_forgotten(channel: str) -> None:
         assert not ghost.exists()
     finally:
         sender.shutdown()
+
+
+def test_frames_sent_together_arrive_together_and_own_ones_are_marked(channel: str) -> None:
+    sender = open_bus("local", channel, receive_own_messages=True)
+    receiver = open_bus("local", channel)
+    try:
+        time.sleep(2 * PEER_CHECK_S)
+        frames = [can.Message(arbitration_id=0x201 + i, data=bytes([i])) for i in range(3)]
+        sender.send_frames([*frames, can.Message(arbitration_id=0x80, data=b"")])
+        received = [receiver.recv(0.5) for _ in range(4)]
+        echoed = [sender.recv(0.5) for _ in range(4)]
+        assert [m.arbitration_id for m in received] == [0x201, 0x202, 0x203, 0x80]
+        assert len({m.timestamp for m in received}) == 1 and all(m.is_rx for m in received)
+        assert [m.arbitration_id for m in echoed] == [0x201, 0x202, 0x203, 0x80]
+        assert not any(m.is_rx for m in echoed)
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
