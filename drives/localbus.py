@@ -83,9 +83,15 @@ class LocalBus(can.BusABC):
     ) -> None:
         self.channel = str(channel)
         self.channel_info = f"local bus {channel}"
-        self._directory = channel_directory(self.channel)
-        self._address = str(self._directory / f"{os.getpid()}-{next(_SEQUENCE)}")
-        os.mkfifo(self._address, 0o600)
+        name = f"{os.getpid()}-{next(_SEQUENCE)}"
+        while True:
+            self._directory = channel_directory(self.channel)
+            self._address = str(self._directory / name)
+            try:
+                os.mkfifo(self._address, 0o600)
+                break
+            except FileNotFoundError:
+                continue  # the channel's last bus removed the directory just now
         # Read and write: the pipe never reports end-of-file while no other bus writes to it.
         self._fifo = os.open(self._address, os.O_RDWR | os.O_NONBLOCK)
         _enlarge(self._fifo)
@@ -185,6 +191,8 @@ class LocalBus(can.BusABC):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self._address)
         os.close(self._fifo)
+        with contextlib.suppress(OSError):
+            self._directory.rmdir()  # the channel's last bus
 
     def _refresh_peers(self) -> None:
         # Creating or removing a pipe changes the directory's mtime: list it again only then,

@@ -48,6 +48,8 @@ from runtime.status import StatusSnapshot
 
 logger = logging.getLogger(__name__)
 
+#: Run directories are named after this and the supervisor's pid.
+RUN_DIR_PREFIX = "softmotion-run-"
 #: How often the supervisor looks at its children and the log ring [s].
 SUPERVISE_PERIOD_S = 0.02
 #: The cycle's first status must come within this time of its start (plus the boot timeout).
@@ -100,7 +102,9 @@ class Runtime:
         self.log_level = log_level
         self.serve_hmi = serve_hmi and config.modbus.enabled
         self.axis_names = tuple(axis.name for axis in config.axes)
-        self.run_dir = Path(tempfile.mkdtemp(prefix="softmotion-", dir=_run_base()))
+        base = _run_base()
+        _remove_stale_run_dirs(base)
+        self.run_dir = Path(tempfile.mkdtemp(prefix=f"{RUN_DIR_PREFIX}{os.getpid()}-", dir=base))
         self.shared = SharedState.create(shared_path(self.run_dir), self.axis_names)
         self.programs = ProgramStore(self.run_dir / "programs")
         self._context = multiprocessing.get_context("spawn")
@@ -299,6 +303,24 @@ def _check_port(bind: str, port: int) -> None:
             probe.bind((bind, port))
         except OSError as exc:
             raise RuntimeFault(f"modbus: cannot listen on {bind}:{port}: {exc.strerror}") from None
+
+
+def _remove_stale_run_dirs(base: str | None) -> None:
+    """Remove the run directories of supervisors that are gone (killed without a shutdown)."""
+    for entry in Path(base or tempfile.gettempdir()).glob(f"{RUN_DIR_PREFIX}*-*"):
+        pid = entry.name[len(RUN_DIR_PREFIX) :].split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _run_base() -> str | None:
