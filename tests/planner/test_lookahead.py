@@ -11,9 +11,8 @@ import pytest
 import setpoint_checks as sc
 import yaml
 
+from planner.envelope import CHORD_MARGIN, FeedEnvelope
 from planner.lookahead import (
-    CHORD_MARGIN,
-    FeedEnvelope,
     PlanLimits,
     _brake_first,
     _Checker,
