@@ -47,6 +47,8 @@ MIN_FEED_MM_S = 1e-6
 CORNER_COS_TOL = 1e-12
 #: Ternary-search steps locating a cusp inside a span.
 CUSP_SEARCH_STEPS = 60
+#: Golden sections locating a curvature maximum between its grid neighbours.
+PEAK_SEARCH_STEPS = 40
 #: Halvings of the grid towards a sharp corner (C'(u) = 0).
 CORNER_REFINEMENTS = 30
 #: The envelope dilation assumes feed overrides up to this ratio of the path's vmax.
@@ -152,17 +154,14 @@ class FeedEnvelope:
             kappa[knot_rows[corner]] = np.inf
         samples = (u, v)
         extras = []
-        peaks = self._refined_maxima(u, kappa)
+        peaks = self._curvature_maxima(u, kappa)
         if peaks.size:
-            # A second parabola, through the first vertex and two neighbours a tenth of the grid
-            # interval away: sharp peaks are not parabolas at the grid's scale.
+            # The tip and two neighbours a tenth of the grid interval away, so that the linear
+            # interpolation of the limit rises from the tip as the curvature falls.
             i = np.clip(np.searchsorted(u, peaks), 1, len(u) - 1)
             width = 0.1 * (u[i] - u[i - 1])
             trio = np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1])
-            trio = trio.ravel()
-            k_trio, v_trio, _, _ = self._limit(trio)
-            extras.append((trio, v_trio))
-            extras.append(self._sampled(self._refined_maxima(trio, k_trio)))
+            extras.append(self._sampled(trio.ravel()))
         cusps = self._cusps(u, d1)
         if cusps.size:
             # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
@@ -264,21 +263,28 @@ class FeedEnvelope:
         u_added, v_added = (np.concatenate(columns) for columns in zip(*added, strict=True))
         return u_added, v_added
 
-    @staticmethod
-    def _refined_maxima(u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
-        """Vertex of the parabola through each interior local maximum of curvature."""
+    def _curvature_maxima(self, u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+        """Parameters of the interior local maxima of curvature, by golden-section search.
+
+        Each grid maximum brackets one between its neighbours; a tip far narrower than the grid
+        (a near-cusp) is found to ``PEAK_SEARCH_STEPS`` golden sections of the bracket, so
+        that its limit is planned at the tip's own radius (a parabola through the grid samples
+        would miss most of it).
+        """
         k0, k1, k2 = kappa[:-2], kappa[1:-1], kappa[2:]
         peak = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
         if peak.size == 0:
             return peak.astype(float)
-        x0, x1, x2 = u[peak - 1], u[peak], u[peak + 1]
-        y0, y1, y2 = kappa[peak - 1], kappa[peak], kappa[peak + 1]
-        num = (x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)
-        den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            vertex = x1 - 0.5 * num / den
-        vertex = np.where(np.isfinite(vertex), vertex, x1)
-        return np.clip(vertex, x0, x2)
+        lo, hi = u[peak - 1].copy(), u[peak + 1].copy()
+        ratio = 0.5 * (np.sqrt(5.0) - 1.0)
+        for _ in range(PEAK_SEARCH_STEPS):
+            a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+            k = self._curve.curvature(np.concatenate([a, b]))
+            k = np.where(np.isfinite(k), k, np.inf)
+            left = k[: a.size] >= k[a.size :]
+            hi = np.where(left, b, hi)
+            lo = np.where(left, lo, a)
+        return 0.5 * (lo + hi)
 
     @staticmethod
     def _corner_grid(u: np.ndarray, v: np.ndarray) -> np.ndarray:
