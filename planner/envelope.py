@@ -9,7 +9,7 @@ Beyond the paper: each sample is lowered to the limits a period's step from it c
 dilation, exact for the piecewise-linear limit between samples), so that a step never sees a
 larger curvature than planned; sharp corners and cusps (C'(u) = 0 with a turning tangent) are
 stops (limit 0) with a grid refined towards them; the curvature maxima are located by
-golden-section search on the curvature itself, so that a tip far narrower than the grid is
+a shrinking grid search of the curvature itself, so that a tip far narrower than the grid is
 planned at its own radius.
 
 Units: s in mm, feeds in mm/s, u dimensionless. Chunks of ``CHUNK_SPANS`` knot spans are
@@ -47,8 +47,9 @@ MIN_FEED_MM_S = 1e-6
 CORNER_COS_TOL = 1e-12
 #: Ternary-search steps locating a cusp inside a span.
 CUSP_SEARCH_STEPS = 60
-#: Golden sections locating a curvature maximum between its grid neighbours.
-PEAK_SEARCH_STEPS = 40
+#: Rounds and points per round of the search of a curvature maximum between its grid
+#: neighbours (each round shrinks the bracket to 2 / (points + 1) of it).
+PEAK_SEARCH_STEPS, PEAK_SEARCH_POINTS = 6, 9
 #: Halvings of the grid towards a sharp corner (C'(u) = 0).
 CORNER_REFINEMENTS = 30
 #: The envelope dilation assumes feed overrides up to this ratio of the path's vmax.
@@ -264,27 +265,29 @@ class FeedEnvelope:
         return u_added, v_added
 
     def _curvature_maxima(self, u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
-        """Parameters of the interior local maxima of curvature, by golden-section search.
+        """Parameters of the interior local maxima of curvature, by a shrinking grid search.
 
-        Each grid maximum brackets one between its neighbours; a tip far narrower than the grid
-        (a near-cusp) is found to ``PEAK_SEARCH_STEPS`` golden sections of the bracket, so
-        that its limit is planned at the tip's own radius (a parabola through the grid samples
-        would miss most of it).
+        Each grid maximum brackets one between its neighbours; ``PEAK_SEARCH_STEPS`` times the
+        curvature is evaluated at ``PEAK_SEARCH_POINTS`` points across the bracket (all peaks
+        in one call) and the bracket shrinks to the best point's neighbours, so that a tip far
+        narrower than the grid (a near-cusp) is planned at its own radius (a parabola through
+        the grid samples would miss most of it).
         """
         k0, k1, k2 = kappa[:-2], kappa[1:-1], kappa[2:]
         peak = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
         if peak.size == 0:
             return peak.astype(float)
-        lo, hi = u[peak - 1].copy(), u[peak + 1].copy()
-        ratio = 0.5 * (np.sqrt(5.0) - 1.0)
+        lo, hi = u[peak - 1], u[peak + 1]
+        inner = np.linspace(0.0, 1.0, PEAK_SEARCH_POINTS + 2)
+        best = u[peak]
         for _ in range(PEAK_SEARCH_STEPS):
-            a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
-            k = self._curve.curvature(np.concatenate([a, b]))
+            x = lo[:, None] + (hi - lo)[:, None] * inner
+            k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(lo), -1)
             k = np.where(np.isfinite(k), k, np.inf)
-            left = k[: a.size] >= k[a.size :]
-            hi = np.where(left, b, hi)
-            lo = np.where(left, lo, a)
-        return 0.5 * (lo + hi)
+            i = np.argmax(k, axis=1) + 1
+            rows = np.arange(len(lo))
+            best, lo, hi = x[rows, i], x[rows, i - 1], x[rows, i + 1]
+        return best
 
     @staticmethod
     def _corner_grid(u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ def _uniform_knots(points: int, degree: int) -> np.ndarray:
     return np.concatenate([[0.0] * (degree + 1), inner, [float(points - degree)] * (degree + 1)])
 
 
-def cusp_curve(seed: int, legs: int = 16) -> NurbsCurve:
+def cusp_curve(seed: int, legs: int = 16, degree: int = 3) -> NurbsCurve:
     """A folding polygon: every other leg folds back (exactly, or offset sideways)."""
     rng = np.random.default_rng(seed)
     heading = rng.uniform(0.0, 2.0 * np.pi)
@@ -54,10 +54,10 @@ def cusp_curve(seed: int, legs: int = 16) -> NurbsCurve:
         step = length * np.array([np.cos(heading), np.sin(heading)])
         points.append(points[-1] + step)
     pts = np.array(points)
-    return NurbsCurve.from_arrays(3, pts, _uniform_knots(len(pts), 3))
+    return NurbsCurve.from_arrays(degree, pts, _uniform_knots(len(pts), degree))
 
 
-def loop_curve(seed: int, steps: int = 24, dim: int = 2) -> NurbsCurve:
+def loop_curve(seed: int, steps: int = 24, dim: int = 2, degree: int = 3) -> NurbsCurve:
     """A polygon turning by 110-150 degrees a step (alternating sense now and then)."""
     rng = np.random.default_rng(seed)
     heading, sense = 0.0, 1.0
@@ -71,7 +71,7 @@ def loop_curve(seed: int, steps: int = 24, dim: int = 2) -> NurbsCurve:
             step = np.append(step, rng.normal(0.0, 2.0))
         points.append(points[-1] + step)
     pts = np.array(points)
-    return NurbsCurve.from_arrays(3, pts, _uniform_knots(len(pts), 3))
+    return NurbsCurve.from_arrays(degree, pts, _uniform_knots(len(pts), degree))
 
 
 def free_curve(seed: int) -> NurbsCurve:
