@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from planner.profiles import Phase, PhaseTrain
+from planner.profiles import PhaseTrain
 from planner.window import PlanLimits
 
 #: Relative slack of the feed-limit check.
@@ -35,6 +35,12 @@ class Checker:
         """The lowest limit over [s0, s1]."""
         return float(self._interior_mins(np.array([s0]), np.array([s1]))[0])
 
+    def slope(self, s_point: float, half_width_mm: float) -> float:
+        """Slope dv_limit/ds of the limit at s_point, over +-half_width_mm, in 1/s."""
+        h = max(half_width_mm, 1e-6)
+        lo, hi = np.interp([s_point - h, s_point + h], self.s_env, self.v_env)
+        return float((hi - lo) / (2.0 * h))
+
     def flat_end_cap(self, s_point: float, s_lo: float, s_hi: float, v_limit: float) -> float:
         """Highest feed at most ``v_limit`` for a sensitive point at s_point between s_lo and
         s_hi, as far as the limit around it allows.
@@ -55,11 +61,9 @@ class Checker:
         drop = np.where(tau <= A / J, 0.5 * J * tau * tau, A * tau - 0.5 * A * A / J)
         return float(min(v_limit, np.min(self.v_env[lo:hi] + drop)))
 
-    def worst_of(
-        self, segments: list[tuple[float, float, tuple[Phase, ...], float, float]]
-    ) -> list[tuple[float, float] | None]:
-        """For each segment (s0, v0, phases, v_top, s1): (s, v_limit) of its worst excess of the
-        feed limit, or None if it holds.
+    def worst_of(self, segments: list[tuple]) -> list[tuple[float, float] | None]:
+        """For each segment (s0, v0, phases, v_top, s1[, a0]): (s, v_limit) of its worst excess
+        of the feed limit, or None if it holds (a0, the start acceleration, defaults to 0).
 
         Segments whose highest feed is below the lowest limit they span hold at once; the others
         are laid on one time line (a second apart) and sampled together every half period.
@@ -70,9 +74,9 @@ class Checker:
         train = PhaseTrain(0.0, 0.0, 0.0, 0.0)
         sampled, starts, ends = [], [], []
         for i in pending.tolist():
-            s_start, v_start, phases, _, _ = segments[i]
+            s_start, v_start, phases, _, _, *a_start = segments[i]
             start = train.t_s + 1.0
-            train.restart(start, s_start, v_start, 0.0)
+            train.restart(start, s_start, v_start, a_start[0] if a_start else 0.0)
             train.extend(phases)
             if train.t_s > start:  # a segment without motion has nothing to exceed
                 sampled.append(i)

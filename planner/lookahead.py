@@ -47,7 +47,6 @@ from planner.window import (
     PlanLimits,
     SegmentPlan,
     Window,
-    passes,
     segment_plan,
     sensitive_points,
 )
@@ -69,14 +68,18 @@ def _released(
         if not final and (k + 1 == n - 1 or abs(v[k + 1] - upper[k + 1]) > 1e-12 * lim.vmax_mm_s):
             break
         phases, _ = segment_plan(w, k, v, lim)
-        out.append(SegmentPlan(phases, w.s[k + 1], v[k + 1]))
+        out.append(SegmentPlan(phases, w.s[k + 1], v[k + 1], w.acc[k + 1]))
         k += 1
+    # The next window starts at zero acceleration: a release ends on an unpinned point.
+    while out and out[-1].a_end_mm_s2 != 0.0:
+        out.pop()
+        k -= 1
     return out, k
 
 
 def _cruise_cut(w: Window, k: int, v: list[float], lim: PlanLimits) -> SegmentPlan | None:
     """The first half of segment k when it cruises at a peak the window end does not lower."""
-    if w.cosine[k] == 1:
+    if w.cosine[k] == 1 or w.acc[k] != 0.0 or w.acc[k + 1] != 0.0:
         return None
     v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
     v_cap = min(lim.vmax_mm_s, w.peak_cap[k])
@@ -159,7 +162,7 @@ def plan_segments(
             return
         upper_caps = list(w.cap)
         upper_caps[-1] = lim.vmax_mm_s
-        upper = passes(w.s, upper_caps, v, lim)
+        upper = w.speeds(v, lim, caps=upper_caps)
         segments, k = _released(w, v_plan, upper, lim, final=False)
         cut = _cruise_cut(w, k, v_plan, lim) if k < len(w.s) - 1 else None
         if cut is not None:

@@ -20,7 +20,6 @@ from planner.window import (
     MIN_POINT_GAP_MM,
     PlanLimits,
     Window,
-    passes,
     segment_plan,
     segment_time_s,
 )
@@ -28,6 +27,11 @@ from planner.window import (
 #: Refinement rounds, and sensitive points, of one window before the failing segments are
 #: flattened under their lowest limit instead.
 MAX_REFINEMENTS, MAX_WINDOW_POINTS = 30, 300
+#: A point pinned on the feed limit sits this fraction below it (room for the segments on
+#: either side, which match the limit's value and slope there but not its curvature).
+PIN_MARGIN = 0.005
+#: A point is pinned only where the limit's slope asks at most this fraction of A.
+PIN_ACCEL_FRACTION = 0.9
 #: Time a failing segment may lose by cruising at its slower end's feed instead of being split,
 #: relative to its own (failing) time.
 HOLD_SLOWDOWN = 0.02
@@ -43,14 +47,16 @@ def refine(w: Window, checker: Checker, v_start: float, lim: PlanLimits) -> list
     speeds of an S-curve segment never raises it anywhere.
     """
     verdicts: dict[tuple, tuple[float, float] | None] = {}
-    v = passes(w.s, w.cap, v_start, lim)
+    v = w.speeds(v_start, lim)
     for flatten in (False, True):
         if flatten:
             w.cosine = [2 if kind == 1 else kind for kind in w.cosine]
-            v = passes(w.s, w.cap, v_start, lim)
+            for i in range(len(w.s)):
+                w.unpin(i)
+            v = w.speeds(v_start, lim)
         for _ in range(MAX_REFINEMENTS):
             if brake_first(w, v, checker):
-                v = passes(w.s, w.cap, v_start, lim)
+                v = w.speeds(v_start, lim)
             failing = _failing(w, v, checker, lim, verdicts)
             if not failing:
                 return v
@@ -60,7 +66,7 @@ def refine(w: Window, checker: Checker, v_start: float, lim: PlanLimits) -> list
                     changed |= _flatten(w, k, checker)
                 else:
                     changed |= _repair(w, k, v, bad, checker, lim)
-            v = passes(w.s, w.cap, v_start, lim)
+            v = w.speeds(v_start, lim)
             if not changed or (not flatten and len(w.s) > MAX_WINDOW_POINTS):
                 break
     return v
@@ -73,6 +79,7 @@ def _flatten(w: Window, k: int, checker: Checker) -> bool:
     w.peak_cap[k] = min(w.peak_cap[k], floor)
     for i in (k, k + 1):
         if i > 0 and w.cap[i] > floor:
+            w.unpin(i)
             w.cap[i] = floor
             changed = True
     return changed
@@ -109,7 +116,7 @@ def _failing(
         keys[k] = key = w.key(k, v)
         if key not in verdicts and key not in unchecked:
             phases, v_top = segment_plan(w, k, v, lim)
-            unchecked[key] = (w.s[k], v[k], phases, v_top, w.s[k + 1])
+            unchecked[key] = (w.s[k], v[k], phases, v_top, w.s[k + 1], w.acc[k])
     verdicts.update(zip(unchecked, checker.worst_of(list(unchecked.values())), strict=True))
     out = []
     for k in range(len(w.s) - 2, -1, -1):
@@ -179,8 +186,14 @@ def _repair(
             return True
         w.peak_cap[k] = peak_cap
     if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
-        cap = checker.flat_end_cap(s_bad, w.s[k], w.s[k + 1], min(v_limit_bad, lim.vmax_mm_s))
-        w.insert(k, s_bad, cap)
+        v_point = min(v_limit_bad, lim.vmax_mm_s)
+        flat_cap = checker.flat_end_cap(s_bad, w.s[k], w.s[k + 1], v_point)
+        pin = v_point * (1.0 - PIN_MARGIN)
+        acc = pin * checker.slope(s_bad, pin * lim.T)
+        if v_limit_bad < lim.vmax_mm_s and abs(acc) <= PIN_ACCEL_FRACTION * lim.A:
+            w.insert(k, s_bad, pin, acc=acc, flat_cap=flat_cap)
+        else:
+            w.insert(k, s_bad, flat_cap)
         return True
     if max(v[k], v[k + 1]) <= floor * (1.0 + CHECK_SLACK):
         if w.peak_cap[k] > floor * (1.0 + 1e-12):
@@ -189,6 +202,7 @@ def _repair(
         return False
     for i in (k, k + 1):
         if i > 0 and w.cap[i] > floor:
+            w.unpin(i)
             w.cap[i] = floor
             return True
     return False

@@ -188,7 +188,7 @@ def _planned_rows(
                 t_end = math.ceil(t_end / T - _TIME_EPS) * T
                 train.extend([Phase(t_end - train.t_s, 0.0)])
             k_end = max(k_end, math.ceil(t_end / T - _TIME_EPS))  # rows with k T < t_end
-            t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, 0.0
+            t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, segment.a_end_mm_s2
     times = np.arange(k_next, k_end) * T
     rows = train.sample(times)
     k_last = max(k_end, math.ceil(t / T - _TIME_EPS))
