@@ -23,6 +23,7 @@ Units: mm, s; speeds mm/s, A mm/s², J mm/s³. Pure functions on floats; thread-
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -31,8 +32,12 @@ from planner.profiles import Phase
 
 #: Bisection steps of the plateau searches.
 PLATEAU_SEARCH_STEPS = 60
-#: Relative distance tolerance of the plateau searches.
-PLATEAU_RTOL = 1e-10
+#: Relative distance tolerance of the plateau searches (1e-8 of a 10 mm segment is 0.1 nm).
+PLATEAU_RTOL = 1e-8
+#: Relative speed tolerance of the searches for a highest speed.
+SPEED_RTOL = 1e-10
+#: Results kept by the caches of the pure functions below (the scan repeats most of them).
+CACHE_SIZE = 1 << 14
 #: Points per bracket in each round of the acceleration-plateau search.
 RUN_SECTIONS = 17
 
@@ -88,6 +93,7 @@ def advance(v: float, a: float, phases: list[Phase]) -> tuple[float, float, floa
     return s, v, a, t
 
 
+@functools.lru_cache(maxsize=CACHE_SIZE)
 def transition_distance_mm(v0: float, a0: float, v1: float, a1: float, A: float, J: float) -> float:
     """Distance of :func:`transition_phases`: the shortest any motion between the states needs."""
     return advance(v0, a0, transition_phases(v0, a0, v1, a1, A, J))[0]
@@ -128,56 +134,82 @@ _RUN_GRID = np.concatenate(
 )
 
 
+def _run_motion(v0: float, a0: float, a_m, a1: float, dv: float, J: float):
+    """Distance, duration and hold of a0 -> a_m, hold, a_m -> a1 changing the speed by dv,
+    for a float or an array of a_m (operators and abs only; the hold negative or not finite
+    where no such motion exists)."""
+    t1 = abs(a_m - a0) / J
+    t3 = abs(a1 - a_m) / J
+    gain = 0.5 * (a0 + a_m) * t1 + 0.5 * (a_m + a1) * t3
+    hold = (dv - gain) / a_m
+    w1 = v0 + 0.5 * (a0 + a_m) * t1
+    w2 = w1 + a_m * hold
+    # A jerk phase of duration t from a to a' covers v t + a t²/2 + (a' - a) t²/6.
+    d = (
+        v0 * t1
+        + a0 * t1**2 / 2.0
+        + (a_m - a0) * t1**2 / 6.0
+        + w1 * hold
+        + a_m * hold**2 / 2.0
+        + w2 * t3
+        + a_m * t3**2 / 2.0
+        + (a1 - a_m) * t3**2 / 6.0
+    )
+    return d, t1 + hold + t3, hold
+
+
 def _run(
     v0: float, a0: float, v1: float, a1: float, L: float, A: float, J: float
 ) -> list[Phase] | None:
     """a0 -> a_m (jerk +-J), hold a_m, a_m -> a1, covering L: the quickest a_m found.
 
     The hold follows from the speed change; the distance, in closed form, is scanned over a
-    grid of a_m (vectorised), and each bracket of L refined by bisection.
+    grid of a_m (vectorised), and each bracket of L solved by regula falsi (Illinois).
     """
     dv = v1 - v0
-
-    def distance(a_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        t1 = np.abs(a_m - a0) / J
-        t3 = np.abs(a1 - a_m) / J
-        gain = 0.5 * (a0 + a_m) * t1 + 0.5 * (a_m + a1) * t3
-        with np.errstate(divide="ignore", invalid="ignore"):
-            hold = (dv - gain) / a_m
-        j1 = np.sign(a_m - a0) * J
-        j3 = np.sign(a1 - a_m) * J
-        d1 = v0 * t1 + a0 * t1**2 / 2.0 + j1 * t1**3 / 6.0
-        w1 = v0 + 0.5 * (a0 + a_m) * t1
-        d2 = w1 * hold + a_m * hold**2 / 2.0
-        w2 = w1 + a_m * hold
-        d3 = w2 * t3 + a_m * t3**2 / 2.0 + j3 * t3**3 / 6.0
-        d = np.where((hold >= 0.0) & np.isfinite(hold), d1 + d2 + d3, np.nan)
-        return d, t1 + hold + t3
-
-    # Each bracket of L on the grid is narrowed by sections of RUN_SECTIONS points at a time.
     grid = A * _RUN_GRID
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d, _, hold = _run_motion(v0, a0, grid, a1, dv, J)
+    excess = np.where((hold >= 0.0) & np.isfinite(hold), d - L, np.nan)
+    brackets = np.flatnonzero(
+        np.isfinite(excess[:-1]) & np.isfinite(excess[1:]) & (excess[:-1] * excess[1:] <= 0.0)
+    )
     best: list[Phase] | None = None
     best_t = math.inf
-    for _ in range(PLATEAU_SEARCH_STEPS // 6):
-        d, t_run = distance(grid)
-        excess = d - L
-        crossing = np.flatnonzero(
-            np.isfinite(excess[:-1])
-            & np.isfinite(excess[1:])
-            & (np.sign(excess[:-1]) != np.sign(excess[1:]))
+    for i in brackets.tolist():
+        a_m = _regula_falsi(
+            lambda x: _run_motion(v0, a0, x, a1, dv, J)[0] - L if x != 0.0 else math.inf,
+            float(grid[i]),
+            float(excess[i]),
+            float(grid[i + 1]),
+            float(excess[i + 1]),
+            PLATEAU_RTOL * L,
         )
-        close = np.isfinite(excess) & (np.abs(excess) <= PLATEAU_RTOL * L)
-        for i in np.flatnonzero(close).tolist():
-            if t_run[i] < best_t:
-                a_m = float(grid[i])
-                gain = 0.5 * (a0 + a_m) * abs(a_m - a0) / J + 0.5 * (a_m + a1) * abs(a1 - a_m) / J
-                best, best_t = _through(a0, a_m, (dv - gain) / a_m, a1, J), float(t_run[i])
-        if best is not None or crossing.size == 0:
-            return best
-        lo, hi = grid[crossing], grid[crossing + 1]
-        fractions = np.linspace(0.0, 1.0, RUN_SECTIONS)
-        grid = (lo[:, None] + (hi - lo)[:, None] * fractions).ravel()
+        d_m, t_m, hold_m = _run_motion(v0, a0, a_m, a1, dv, J)
+        if hold_m >= 0.0 and abs(d_m - L) <= PLATEAU_RTOL * L and t_m < best_t:
+            best, best_t = _through(a0, a_m, hold_m, a1, J), t_m
     return best
+
+
+def _regula_falsi(f, x0: float, f0: float, x1: float, f1: float, tol: float) -> float:
+    """A root of f between x0 and x1 (f0 f1 <= 0) to |f| <= tol, by the Illinois method."""
+    side = 0
+    for _ in range(PLATEAU_SEARCH_STEPS):
+        if abs(f0) <= tol:
+            return x0
+        if abs(f1) <= tol:
+            return x1
+        x = (x0 * f1 - x1 * f0) / (f1 - f0) if f1 != f0 else 0.5 * (x0 + x1)
+        fx = f(x)
+        if fx * f1 < 0.0:
+            x0, f0 = x1, f1
+            side = 0
+        elif side == 1:
+            f0 *= 0.5
+        else:
+            side = 1
+        x1, f1 = x, fx
+    return x1
 
 
 def _speed_plateau(
@@ -198,17 +230,11 @@ def _speed_plateau(
     up, down, d = pieces(low)
     if d > L:
         return None
-    lo, hi = low, top  # lo fits, hi does not
-    for _ in range(PLATEAU_SEARCH_STEPS):
-        mid = 0.5 * (lo + hi)
-        up_m, down_m, d_m = pieces(mid)
-        if d_m <= L:
-            lo, up, down, d = mid, up_m, down_m, d_m
-            if d_m >= L * (1.0 - PLATEAU_RTOL):
-                break
-        else:
-            hi = mid
-    return _with_cruise(up, down, lo, L - d)
+    v_p = _regula_falsi(
+        lambda x: pieces(x)[2] - L, low, d - L, top, pieces(top)[2] - L, PLATEAU_RTOL * L
+    )
+    up, down, d = pieces(v_p)
+    return _with_cruise(up, down, v_p, L - d)
 
 
 def _with_cruise(up: list[Phase], down: list[Phase], v_p: float, rest_mm: float) -> list[Phase]:
@@ -216,6 +242,7 @@ def _with_cruise(up: list[Phase], down: list[Phase], v_p: float, rest_mm: float)
     return [*up, *cruise, *down]
 
 
+@functools.lru_cache(maxsize=CACHE_SIZE)
 def highest_start_speed(
     v1: float, a1: float, L: float, v_cap: float, A: float, J: float
 ) -> float | None:
@@ -231,6 +258,7 @@ def highest_start_speed(
     )
 
 
+@functools.lru_cache(maxsize=CACHE_SIZE)
 def highest_end_speed(
     v0: float, a0: float, L: float, v_cap: float, A: float, J: float
 ) -> float | None:
@@ -260,6 +288,6 @@ def _bisect_speed(fits, low: float, high: float) -> float:
             low = mid
         else:
             high = mid
-        if high - low <= 1e-12 * max(high, 1.0):
+        if high - low <= SPEED_RTOL * max(high, 1.0):
             break
     return low
