@@ -41,25 +41,33 @@ class Checker:
         lo, hi = np.interp([s_point - h, s_point + h], self.s_env, self.v_env)
         return float((hi - lo) / (2.0 * h))
 
-    def flat_end_cap(self, s_point: float, s_lo: float, s_hi: float, v_limit: float) -> float:
-        """Highest feed at most ``v_limit`` for a sensitive point at s_point between s_lo and
-        s_hi, as far as the limit around it allows.
+    def end_cap(
+        self, s_point: float, s_lo: float, s_hi: float, v_limit: float, accel: float = 0.0
+    ) -> float:
+        """Highest feed at most ``v_limit`` for a point at s_point between s_lo and s_hi where
+        the plan has acceleration ``accel``, as far as the limit around it allows.
 
-        The plan has zero acceleration at a sensitive point, so a time tau before or after it
-        its feed is at least v - drop(tau), where drop is the jerk-limited change from rest
-        (J tau²/2, then A tau - A²/2J); where the limit rises towards the point or falls away
-        from it faster than that, a point capped at the limit itself would be exceeded next to
-        it by every plan. With tau = |s - s_point| / v, the cap is min(limit(s) + drop(tau)),
-        which holds as well for the lower cap it gives (drop grows as v falls).
+        A time tau after the point the plan's feed is at least v + a tau - drop, where drop is
+        the jerk-limited departure from that line (J tau²/2 while the acceleration falls from
+        a to -A, then linear), and tau before it at least v - a tau - drop with A - a in place
+        of A + a; where the limit rises towards the point or falls away from it faster than
+        that, a point capped at the limit itself would be exceeded next to it by every plan.
+        With tau = (s - s_point) / v, the cap is min(limit(s) - a tau + drop(|tau|)), which
+        holds as well for the lower cap it gives. With a = 0 this is the cap of a sensitive
+        point (zero acceleration).
         """
         lo = int(np.searchsorted(self.s_env, s_lo, side="right"))
         hi = int(np.searchsorted(self.s_env, s_hi, side="left"))
         if hi <= lo or v_limit <= 0.0:
             return v_limit
         A, J = self.lim.A, self.lim.J
-        tau = np.abs(self.s_env[lo:hi] - s_point) / v_limit
-        drop = np.where(tau <= A / J, 0.5 * J * tau * tau, A * tau - 0.5 * A * A / J)
-        return float(min(v_limit, np.min(self.v_env[lo:hi] + drop)))
+        tau = (self.s_env[lo:hi] - s_point) / v_limit
+        reach = np.where(tau >= 0.0, A + accel, A - accel)
+        span = np.abs(tau)
+        drop = np.where(
+            span <= reach / J, 0.5 * J * span * span, reach * span - 0.5 * reach * reach / J
+        )
+        return float(min(v_limit, np.min(self.v_env[lo:hi] - accel * tau + drop)))
 
     def worst_of(self, segments: list[tuple]) -> list[tuple[float, float] | None]:
         """For each segment (s0, v0, phases, v_top, s1[, a0]): (s, v_limit) of its worst excess

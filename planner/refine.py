@@ -12,6 +12,8 @@ Units: s in mm, feeds mm/s. Pure computation; not thread-safe (it edits the wind
 
 from __future__ import annotations
 
+import math
+
 from planner.checker import CHECK_SLACK, Checker
 from planner.envelope import MIN_FEED_MM_S
 from planner.profiles import Phase
@@ -146,7 +148,7 @@ def _repair(
     """One repair of segment k: cosine re-plan (F_v_plan), a new point, or a lower peak.
 
     A new sensitive point goes to the worst excess, capped by the feed limit there as far as a
-    point of zero acceleration can meet it (:meth:`Checker.flat_end_cap`); the two halves are
+    point of zero acceleration can meet it (:meth:`Checker.end_cap`); the two halves are
     checked again, so refinement converges to a staircase that follows the limit where it keeps
     changing (capping at the segment's lowest limit instead would hold whole stretches below
     it). Before a split, a segment whose cruise at its slower end's feed costs at most
@@ -187,10 +189,16 @@ def _repair(
         w.peak_cap[k] = peak_cap
     if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
         v_point = min(v_limit_bad, lim.vmax_mm_s)
-        flat_cap = checker.flat_end_cap(s_bad, w.s[k], w.s[k + 1], v_point)
+        flat_cap = checker.end_cap(s_bad, w.s[k], w.s[k + 1], v_point)
         pin = v_point * (1.0 - PIN_MARGIN)
+        reach = PIN_ACCEL_FRACTION * lim.A
         acc = pin * checker.slope(s_bad, pin * lim.T)
-        if v_limit_bad < lim.vmax_mm_s and abs(acc) <= PIN_ACCEL_FRACTION * lim.A:
+        if abs(acc) > reach:
+            # A limit changing faster than the plan can: the point sits lower, where changing
+            # the feed at reach meets the limit.
+            acc = math.copysign(reach, acc)
+            pin = checker.end_cap(s_bad, w.s[k], w.s[k + 1], pin, acc)
+        if v_limit_bad < lim.vmax_mm_s:
             w.insert(k, s_bad, pin, acc=acc, flat_cap=flat_cap)
         else:
             w.insert(k, s_bad, flat_cap)
