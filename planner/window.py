@@ -43,6 +43,8 @@ from planner.profiles.transition import (
 
 #: Relative excess of a ramp over its distance still counted as fitting (round-off).
 RAMP_FIT_RTOL = 1e-9
+#: Times the scan lowers a pinned point it cannot honour before unpinning it.
+PIN_RETRIES = 3
 #: Points closer than this are not inserted, mm.
 MIN_POINT_GAP_MM = 1e-7
 
@@ -141,20 +143,28 @@ class Window:
     def speeds(
         self, v_start: float, lim: PlanLimits, caps: list[float] | None = None
     ) -> list[float]:
-        """Speeds of the points by :func:`passes`, unpinning the points it cannot honour; with
-        other ``caps`` (a look at the plan without the stop at the window end) the window is
-        left as it is."""
+        """Speeds of the points by :func:`passes`, lowering the pinned points it cannot honour
+        (halfway to their flat cap, ``PIN_RETRIES`` times, then unpinned); with other ``caps``
+        (a look at the plan without the stop at the window end) the window is left as it is."""
         keep = caps is not None
         caps = list(self.cap if caps is None else caps)
         acc, pinned = list(self.acc), list(self.pinned)
+        tries = [0] * len(self.s)
         while True:
             v, bad = passes(self.s, caps, v_start, lim, acc, pinned, self)
             if bad is None:
                 return v
+            if tries[bad] < PIN_RETRIES and caps[bad] > self.flat_cap[bad]:
+                # Lower, along the limit's slope: the acceleration scales with the feed.
+                lower = 0.5 * (caps[bad] + self.flat_cap[bad])
+                acc[bad] *= lower / caps[bad]
+                caps[bad] = lower
+                tries[bad] += 1
+            else:
+                pinned[bad], acc[bad] = False, 0.0
+                caps[bad] = min(caps[bad], self.flat_cap[bad])
             if not keep:
-                self.unpin(bad)
-            pinned[bad], acc[bad] = False, 0.0
-            caps[bad] = min(caps[bad], self.flat_cap[bad])
+                self.cap[bad], self.acc[bad], self.pinned[bad] = caps[bad], acc[bad], pinned[bad]
 
 
 def passes(
