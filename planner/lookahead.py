@@ -20,8 +20,9 @@ curve of 100,000 knot spans as on a short one.
 Units: s in mm, feeds mm/s, A mm/s², J mm/s³, T s. Pure computation; one generator per stream,
 not thread-safe.
 
-Not modelled: non-zero acceleration at sensitive points (a conservative choice of the paper);
-per-axis jerk.
+Not modelled: non-zero acceleration at the paper's sensitive points (the curvature maxima: a
+conservative choice of the paper, kept; points the refinement adds may carry one); per-axis
+jerk.
 """
 
 from __future__ import annotations

@@ -3,9 +3,18 @@
 Beyond the paper (motion-planning.md §9 row 6): each round checks every segment
 (:class:`planner.checker.Checker`) and repairs the failing ones: a cosine re-plan where the
 stretch is flagged F_v_plan (eqs. (5)-(13)), a cruise at the slower end's feed when that costs
-little, a new sensitive point at the worst excess, or a lower peak; should the rounds run out,
+little, a new point at the worst excess, or a lower peak; should the rounds run out,
 the failing segments are flattened under the lowest limit they span. A window whose start is
 too fast for its staircase of points brakes in one segment instead (:func:`brake_first`).
+
+A new point is pinned on the limit (:class:`planner.window.Window`): a shade under it
+(``PIN_MARGIN``), with the limit's own slope as its acceleration (v dv_limit/ds, at most
+``PIN_ACCEL_FRACTION`` A; where the limit changes faster the point sits lower, where changing
+the feed at that rate meets the limit), so that the plan runs along the limit instead of
+stopping its acceleration at every point; the segments on either side are general jerk-limited
+motions (:mod:`planner.profiles.transition`). A point the scan cannot honour is lowered, then
+falls back to zero acceleration under the cap that keeps a zero-acceleration point below the
+limit around it (:meth:`planner.checker.Checker.end_cap`).
 
 Units: s in mm, feeds mm/s. Pure computation; not thread-safe (it edits the window).
 """

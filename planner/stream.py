@@ -4,14 +4,17 @@ Source: the look-ahead interpolator of Wang, Zhao, Lu, Liu, China Mechanical Eng
 2012, 299-304 (section 2: eqs. (2)-(13)); beyond the paper: start from any motion state (feed
 override, resume), controlled stop on the path (feed hold), exact landing on the end point.
 
-A :class:`Path` holds what is computed once per curve (arc-length table, the feed-limit envelope
-computed lazily per chunk of knot spans). :func:`stream_setpoints` plans a window ahead
+A :class:`Path` holds what is shared by every plan of a curve: the arc-length table and the
+feed-limit envelope, both built lazily per chunk of knot spans as the windows reach them, so
+preparing a Path is cheap and the first block comes as fast on a long curve as on a short one.
+:func:`stream_setpoints` plans a window ahead
 (:mod:`planner.lookahead`), samples the released closed-form motion every period (vectorised,
 no loop per period) and turns arc length into curve parameters (:mod:`planner.interpolator`).
 
 Units: mm, s; feeds mm/s, accelerations mm/s², jerks mm/s³. Rows are spaced by period_s, their
 time t_s counted from the start state. Pure computation: no clock, no thread; a stream is a
-generator used by one thread; a Path may be shared by streams used one at a time.
+generator used by one thread; a Path may be shared by streams used one at a time (its tables
+grow as they are used).
 
 Invariants: no NaN in a row; with look-ahead, |a| <= amax and |j| <= jmax in the planned
 profile, feed <= vmax (or braking down to it); the final row of a stream that reaches the curve

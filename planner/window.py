@@ -7,6 +7,10 @@ Source: section 2.2 of Wang, Zhao, Lu, Liu, China Mechanical Engineering 23(3), 
   vmax is a region of frequent speed change, flag F_v_plan = 1.
 - Between sensitive points, jerk-limited S-curve segments (:mod:`planner.profiles.scurve`) or,
   where flagged and needed, the cosine profile of eqs. (5)-(13); zero acceleration at the points.
+Beyond the paper: points the refinement pins on the limit carry the limit's slope as their
+acceleration, and the segments touching them are general jerk-limited motions between
+(v0, a0) and (v1, a1) (:mod:`planner.profiles.transition`); the paper's sensitive points keep
+zero acceleration.
 Beyond the paper (motion-planning.md §1, §9 row 6): a bidirectional scan with jerk-feasible
 speed changes (:func:`passes`: backward, the highest speed from which each next point can still
 be met; forward, the highest speed reachable).

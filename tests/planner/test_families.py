@@ -14,9 +14,9 @@ from pathlib import Path as FilePath
 
 import curve_families as cf
 import numpy as np
-import setpoint_checks as sc
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_properties import assert_every_limit_holds
 
 from planner.nurbs import NurbsCurve
 from planner.stream import Path, plan_setpoints, stream_setpoints
@@ -51,16 +51,7 @@ def family_curves(draw) -> NurbsCurve:
     vmax=st.sampled_from([20.0, 100.0]),
 )
 def test_curve_families_keep_every_limit(curve, delta, vmax):
-    limits = Limits(vmax_mm_s=vmax, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=delta)
-    block = plan_setpoints(Path(curve, limits, T), limits, T)
-    assert np.isfinite(block.position_mm).all() and np.isfinite(block.u).all()
-    fig = sc.measure(curve, block.u, block.position_mm, T)
-    assert fig.max_feed_mm_s <= vmax * 1.001
-    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
-    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
-    assert fig.max_chord_error_mm <= delta * 1.01
-    assert fig.end_error_mm <= 1e-6
-    assert block.last and block.feed_mm_s[-1] == 0.0
+    assert_every_limit_holds(curve, delta, vmax)
 
 
 def test_a_near_cusp_is_passed_at_its_own_radius():
