@@ -135,6 +135,17 @@ class Window:
         self.acc[k] = 0.0
         self.cap[k] = min(self.cap[k], self.flat_cap[k])
 
+    def _shapeless(
+        self, v: list[float], acc: list[float], pinned: list[bool], lim: PlanLimits
+    ) -> int | None:
+        """The pinned end of the first segment with no motion of the shapes tried, or None."""
+        for k in range(len(self.s) - 1):
+            if (acc[k] != 0.0 or acc[k + 1] != 0.0) and _shape(
+                self, self.s, k, v, acc, lim
+            ) is None:
+                return k + 1 if pinned[k + 1] else k
+        return None
+
     def merge_first(self, m: int, peak_cap: float) -> None:
         """Remove the points between the start and point m: one segment, held under peak_cap."""
         for column in (self.s, self.cap, self.acc, self.pinned, self.flat_cap, self.fv_plan):
@@ -155,7 +166,9 @@ class Window:
         acc, pinned = list(self.acc), list(self.pinned)
         tries = [0] * len(self.s)
         while True:
-            v, bad = passes(self.s, caps, v_start, lim, acc, pinned, self)
+            v, bad = passes(self.s, caps, v_start, lim, acc, pinned)
+            if bad is None:
+                bad = self._shapeless(v, acc, pinned, lim)
             if bad is None:
                 return v
             if tries[bad] < PIN_RETRIES and caps[bad] > self.flat_cap[bad]:
@@ -178,14 +191,12 @@ def passes(
     lim: PlanLimits,
     acc: list[float] | None = None,
     pinned: list[bool] | None = None,
-    w: Window | None = None,
 ) -> tuple[list[float], int | None] | list[float]:
     """Bidirectional scan: backward (can still meet the next point), then forward (reachable).
 
     Without ``acc`` every point has zero acceleration and the speeds are returned. With it
-    (and ``pinned``, and the window whose segment shapes to try), a pinned point keeps its cap
-    and acceleration where it can be met and left; returns the speeds and the first pinned
-    point that cannot (or None).
+    (and ``pinned``), a pinned point keeps its cap and acceleration where it can be met and
+    left; returns the speeds and the first pinned point that cannot (or None).
     """
     plain = acc is None
     n = len(s)
@@ -219,8 +230,6 @@ def passes(
                 if end is None:
                     return v, k - 1
                 v[k] = end
-            if w is not None and _shape(w, s, k - 1, v, acc, lim) is None:
-                return v, k if pinned[k] else k - 1
             continue
         v[k] = min(back[k], max_ramp_speed(v[k - 1], L, A, J))
         fits = L * (1.0 + RAMP_FIT_RTOL)

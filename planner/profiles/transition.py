@@ -117,11 +117,10 @@ def segment_phases_between(
         return None
     if d_direct * (1.0 + PLATEAU_RTOL) + 1e-12 >= L:
         return direct
-    options = [
-        p
-        for p in (_run(v0, a0, v1, a1, L, A, J), _speed_plateau(v0, a0, v1, a1, L, v_cap, A, J))
-        if p is not None
-    ]
+    plateau, v_p = _speed_plateau(v0, a0, v1, a1, L, v_cap, A, J)
+    if plateau is not None and v_p >= max(v0, v1):
+        return plateau  # a peak above both ends: quicker than any run between them
+    options = [p for p in (_run(v0, a0, v1, a1, L, A, J), plateau) if p is not None]
     if not options:
         return None
     return min(options, key=lambda phases: sum(p.duration_s for p in phases))
@@ -214,8 +213,10 @@ def _regula_falsi(f, x0: float, f0: float, x1: float, f1: float, tol: float) -> 
 
 def _speed_plateau(
     v0: float, a0: float, v1: float, a1: float, L: float, v_cap: float, A: float, J: float
-) -> list[Phase] | None:
-    """Transition to (v_p, 0), cruise, transition to (v1, a1); v_p the highest that fits."""
+) -> tuple[list[Phase] | None, float]:
+    """Transition to (v_p, 0), cruise, transition to (v1, a1); v_p the highest that fits.
+
+    Returns the phases (None if even the lowest plateau is too long) and v_p."""
 
     def pieces(v_p: float) -> tuple[list[Phase], list[Phase], float]:
         up = transition_phases(v0, a0, v_p, 0.0, A, J)
@@ -226,15 +227,15 @@ def _speed_plateau(
     top = max(v_cap, low)
     up, down, d = pieces(top)
     if d <= L:
-        return _with_cruise(up, down, top, L - d)
+        return _with_cruise(up, down, top, L - d), top
     up, down, d = pieces(low)
     if d > L:
-        return None
+        return None, low
     v_p = _regula_falsi(
         lambda x: pieces(x)[2] - L, low, d - L, top, pieces(top)[2] - L, PLATEAU_RTOL * L
     )
     up, down, d = pieces(v_p)
-    return _with_cruise(up, down, v_p, L - d)
+    return _with_cruise(up, down, v_p, L - d), v_p
 
 
 def _with_cruise(up: list[Phase], down: list[Phase], v_p: float, rest_mm: float) -> list[Phase]:
