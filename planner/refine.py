@@ -27,6 +27,7 @@ from planner.checker import CHECK_SLACK, Checker
 from planner.envelope import MIN_FEED_MM_S
 from planner.profiles import Phase
 from planner.profiles.cosine import cosine_fits, cosine_max_high_speed, cosine_time_s
+from planner.profiles.scurve import settled_speed
 from planner.window import (
     MIN_POINT_GAP_MM,
     PlanLimits,
@@ -202,12 +203,15 @@ def _repair(
         pin = v_point * (1.0 - PIN_MARGIN)
         reach = PIN_ACCEL_FRACTION * lim.A
         acc = pin * checker.slope(s_bad, pin * lim.T)
-        if abs(acc) > reach:
+        steep = abs(acc) > reach
+        if steep:
             # A limit changing faster than the plan can: the point sits lower, where changing
-            # the feed at reach meets the limit.
+            # the feed at reach meets the limit (worth it only above the flat cap).
             acc = math.copysign(reach, acc)
             pin = checker.end_cap(s_bad, w.s[k], w.s[k + 1], pin, acc)
-        if v_limit_bad < lim.vmax_mm_s:
+        # Braking at a pinned point must be released before the feed reaches zero.
+        released = settled_speed(pin, min(acc, 0.0), lim.J) > PIN_MARGIN * pin
+        if v_limit_bad < lim.vmax_mm_s and released and not (steep and pin <= flat_cap):
             w.insert(k, s_bad, pin, acc=acc, flat_cap=flat_cap)
         else:
             w.insert(k, s_bad, flat_cap)

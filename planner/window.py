@@ -253,25 +253,28 @@ def _shape(
         phases = segment_phases_between(
             v[k], acc[k], v[k + 1], acc[k + 1], s[k + 1] - s[k], v_cap, lim.A, lim.J
         )
-        top = None if phases is None else _top_speed(v[k], acc[k], phases)
-        # A transition may overshoot its ends; above the feed cap it is no motion of this plan.
-        fits = top is not None and top <= max(v_cap, v[k], v[k + 1]) * (1.0 + RAMP_FIT_RTOL)
+        low, top = (-1.0, math.inf) if phases is None else _speed_range(v[k], acc[k], phases)
+        # A transition may overshoot its ends: above the feed cap, or backwards, it is no
+        # motion of this plan.
+        fits = low >= 0.0 and top <= max(v_cap, v[k], v[k + 1]) * (1.0 + RAMP_FIT_RTOL)
         w.plans[key] = (tuple(phases), top) if fits else None
     return w.plans[key]
 
 
-def _top_speed(v: float, a: float, phases: list[Phase]) -> float:
-    """Highest feed of constant-jerk phases from (v, a): at their ends or where a crosses 0."""
-    top = v
+def _speed_range(v: float, a: float, phases: list[Phase]) -> tuple[float, float]:
+    """Lowest and highest feed of constant-jerk phases from (v, a): at their ends or where the
+    acceleration crosses zero."""
+    low = high = v
     for phase in phases:
         tau, j = phase.duration_s, phase.jerk_mm_s3
         if j != 0.0 and 0.0 < -a / j < tau:  # a crosses zero inside: a speed extremum
             t0 = -a / j
-            top = max(top, v + a * t0 + j * t0 * t0 / 2.0)
+            extremum = v + a * t0 + j * t0 * t0 / 2.0
+            low, high = min(low, extremum), max(high, extremum)
         v += a * tau + j * tau * tau / 2.0
         a += j * tau
-        top = max(top, v)
-    return top
+        low, high = min(low, v), max(high, v)
+    return low, high
 
 
 def segment_plan(
