@@ -58,6 +58,23 @@ MAX_OVERRIDE_RATIO = 2.0
 CHORD_MARGIN = 0.03
 
 
+def curvature_rises(d1: np.ndarray, d2: np.ndarray, d3: np.ndarray) -> np.ndarray:
+    """Whether dkappa/du > 0, from the rows of C', C'' and the third derivative D3.
+
+    With c = C' x C'' (dc/du = C' x D3), kappa = |c| / |C'|^3 and
+    dkappa/du = ((c . dc/du) |C'|^2 - 3 |c|^2 (C' . C'')) / (|c| |C'|^5): the numerator's sign.
+    """
+    if d1.shape[1] == 2:
+        c = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+        dc = d1[:, 0] * d3[:, 1] - d1[:, 1] * d3[:, 0]
+        c_dc, c_c = c * dc, c * c
+    else:
+        c, dc = np.cross(d1, d2), np.cross(d1, d3)
+        c_dc, c_c = np.einsum("ij,ij->i", c, dc), np.einsum("ij,ij->i", c, c)
+    speed2 = np.einsum("ij,ij->i", d1, d1)
+    return c_dc * speed2 - 3.0 * c_c * np.einsum("ij,ij->i", d1, d2) > 0.0
+
+
 class FeedEnvelope:
     """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
 
@@ -140,9 +157,14 @@ class FeedEnvelope:
         # A tangent that turns at a knot is a sharp corner: the feed must come to 0 there.
         knot_rows = np.cumsum(counts)[:-1]
         below = np.nextafter(u[knot_rows], -np.inf)
-        kappa, v, d1, _ = self._limit(np.concatenate([u, below]))
+        kappa, v, d1, rising = self._limit(np.concatenate([u, below]), slopes=True)
         k_left, v_left, d_left = kappa[u.size :], v[u.size :], d1[u.size :]
         kappa, v, d1 = kappa[: u.size], v[: u.size], d1[: u.size]
+        # Whether the curvature rises at each sample, and at the end of each grid interval
+        # seen from inside it (the left side of a knot).
+        rising_end = rising[1 : u.size].copy()
+        rising_end[knot_rows - 1] = rising[u.size :]
+        hidden = np.flatnonzero(rising[: u.size - 1] & ~rising_end)
         if knot_rows.size:
             v[knot_rows] = np.minimum(v[knot_rows], v_left)
             kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
@@ -155,7 +177,7 @@ class FeedEnvelope:
             kappa[knot_rows[corner]] = np.inf
         samples = (u, v)
         extras = []
-        peaks = self._curvature_maxima(u, kappa)
+        peaks = self._curvature_maxima(u, kappa, hidden)
         if peaks.size:
             # The tip and two neighbours a tenth of the grid interval away, so that the linear
             # interpolation of the limit rises from the tip as the curvature falls.
@@ -180,14 +202,18 @@ class FeedEnvelope:
         s = s[starts]
         return s, self._dilated(s, v)
 
-    def _limit(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """kappa, v_limit, C' and C'' at u."""
+    def _limit(
+        self, u: np.ndarray, *, slopes: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """kappa, v_limit, C' and C'' at u; with ``slopes``, whether the curvature rises there
+        (dkappa/du > 0) in place of C''."""
         if u.size == 0:
             d = np.empty((0, self._curve.dimension))
             return np.empty(0), np.empty(0), d, d
-        _, d1, d2 = self._curve.evaluate(u, order=2)
+        ders = self._curve.evaluate(u, order=3 if slopes else 2)
+        d1, d2 = ders[1], ders[2]
         kappa, v = geometric_feed_limit(d1, d2, self._planning_limits, self._T)
-        return kappa, v, d1, d2
+        return kappa, v, d1, curvature_rises(d1, d2, ders[3]) if slopes else d2
 
     def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Samples (u, v_limit) at u."""
@@ -264,10 +290,12 @@ class FeedEnvelope:
         u_added, v_added = (np.concatenate(columns) for columns in zip(*added, strict=True))
         return u_added, v_added
 
-    def _curvature_maxima(self, u: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+    def _curvature_maxima(self, u: np.ndarray, kappa: np.ndarray, hidden: np.ndarray) -> np.ndarray:
         """Parameters of the interior local maxima of curvature, by a shrinking grid search.
 
-        Each grid maximum brackets one between its neighbours; ``PEAK_SEARCH_STEPS`` times the
+        Each grid maximum brackets one between its neighbours, and each grid interval in
+        ``hidden`` (the curvature rising at its start and falling at its end: a peak between
+        two low samples) one between its ends; ``PEAK_SEARCH_STEPS`` times the
         curvature is evaluated at ``PEAK_SEARCH_POINTS`` points across the bracket (all peaks
         in one call) and the bracket shrinks to the best point's neighbours, so that a tip far
         narrower than the grid (a near-cusp) is planned at its own radius (a parabola through
@@ -275,11 +303,12 @@ class FeedEnvelope:
         """
         k0, k1, k2 = kappa[:-2], kappa[1:-1], kappa[2:]
         peak = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
-        if peak.size == 0:
-            return peak.astype(float)
-        lo, hi = u[peak - 1], u[peak + 1]
+        if peak.size + hidden.size == 0:
+            return np.empty(0)
+        lo = np.concatenate([u[peak - 1], u[hidden]])
+        hi = np.concatenate([u[peak + 1], u[hidden + 1]])
         inner = np.linspace(0.0, 1.0, PEAK_SEARCH_POINTS + 2)
-        best = u[peak]
+        best = 0.5 * (lo + hi)
         for _ in range(PEAK_SEARCH_STEPS):
             x = lo[:, None] + (hi - lo)[:, None] * inner
             k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(lo), -1)
