@@ -1,27 +1,30 @@
-"""Planner benchmark (not a test): prints real-time factors, time-optimality and feed fluctuation.
+"""Planner benchmark (not a test): time-optimality, first block, real-time factors, re-plans.
 
+- Motion time per curve family (tests/planner/curve_families.py: the paper's curve, folding
+  polygons with cusps and 0.02 mm near-cusps, loops, free control polygons), delta 1 µm and the
+  paper's limits, against the acceleration-limited lower bound and against a jerk-limited
+  reference (bench/jerk_reference.py: a sequential linear program in v², zero acceleration at
+  the curvature maxima like the planner's sensitive points; needs scipy, the ``bench`` extra),
+  both on one adaptive grid with cusps and corners as stops. Measured limits on the setpoints.
+- The paper's curve at delta 0.1, 0.5, 1 µm against both.
+- First block of a 1,000- and a 100,000-span curve in the same run: CPU time from Path() to the
+  first block, and the peak of traced memory over it (the curve itself is built before).
 - Real-time factor: motion time / CPU time to prepare the path, plan and interpolate every
-  setpoint (target >= 1000; the fastest of three runs or more, up to a second of CPU time),
-  on the paper's curve, on a long smooth random curve and on a winding one whose feed limit
-  keeps changing. The paper's curve moves for under 2 s, so the fixed cost of a plan
-  (arc-length table, envelope, look-ahead, and the arc-length inversion of each batch of rows)
-  dominates there.
-- Motion time / acceleration-limited lower bound (forward-backward v² pass on a fine arc grid
-  with the same vmax, chord-error and amax limits; motion-planning.md §7), per chord error.
-  What separates the plan from the bound: the jerk limit (every speed change takes A/J longer,
-  most visible at the start and end), and zero acceleration at sensitive points, so that where
-  the feed limit keeps changing the plan follows it as a staircase of S-curves below it.
-- Feed fluctuation of the parameter update, taylor2 (eq. (2)) against corrected: max and mean
-  |realised / planned - 1|, with the realised step the arc length between consecutive setpoints
-  (arc-based) and the chord between them (chord-based, shorter by (kappa L)²/24).
+  setpoint (the fastest of three runs or more, up to a second of CPU time), and the cold single
+  plan ``softmotion plan`` prints (one run, Path() and the plan, as it times them).
+- Re-plan from a mid-path motion state (a feed override splice: s, feed and acceleration
+  non-zero): CPU time from the call to the first block, on the paper's curve and on a
+  2,000-span curve.
+- Feed fluctuation of the parameter update, taylor2 (eq. (2)) against corrected.
 
-Run: .venv/bin/python bench/bench_planner.py
+Run: .venv/bin/python bench/bench_planner.py  (pip install -e .[bench] for the reference)
 """
 
 from __future__ import annotations
 
 import sys
 import time
+import tracemalloc
 from pathlib import Path as FilePath
 
 import numpy as np
@@ -29,13 +32,20 @@ import yaml
 
 ROOT = FilePath(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "planner"))
 
+import curve_families as cf  # noqa: E402
+import feed_bound as fb  # noqa: E402
 import setpoint_checks as sc  # noqa: E402
 
-from planner.feed import chord_error_feed  # noqa: E402
 from planner.nurbs import NurbsCurve  # noqa: E402
 from planner.stream import Path, stream_setpoints  # noqa: E402
 from planner.types import Limits, SetpointBlock  # noqa: E402
+
+try:
+    import jerk_reference as ref
+except ImportError:  # scipy missing: the bound alone
+    ref = None
 
 T = 0.004
 #: Complete plans timed per real-time factor, at least, and CPU time after which no more are
@@ -50,6 +60,10 @@ def limits(delta_mm: float) -> Limits:
 
 def paper_curve() -> NurbsCurve:
     return NurbsCurve.from_mapping(yaml.safe_load((ROOT / "configs/curves/paper.yaml").read_text()))
+
+
+#: Curves per family in the time-optimality table.
+FAMILY_SEEDS = range(4)
 
 
 def random_curve(
@@ -91,41 +105,106 @@ def fluctuation(path: Path, block: SetpointBlock) -> tuple[float, float, float, 
     return arc.max(), arc.mean(), chord_f.max(), chord_f.mean()
 
 
+def optimality_row(name: str, curve: NurbsCurve, delta: float) -> None:
+    _, block, _ = timed_plan(curve, limits(delta))
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    limit = fb.feed_limit_curve(curve, 100.0, delta, T)
+    bound = fb.acceleration_bound_time_s(limit, 1000.0)
+    line = (
+        f"{name:14s} {delta * 1e3:5.1f} {fig.motion_time_s:8.3f} {bound:8.3f} "
+        f"{fig.motion_time_s / bound:6.3f}"
+    )
+    if ref is not None:
+        reference, _ = ref.jerk_limited_time_s(limit, 1000.0, 20000.0, zero_accel_at_peaks=True)
+        line += f" {reference:8.3f} {fig.motion_time_s / reference:6.3f}"
+    else:
+        line += f" {'-':>8s} {'-':>6s}"
+    print(
+        f"{line} {fig.max_feed_mm_s:7.2f} {fig.max_accel_mm_s2:7.1f} {fig.max_jerk_mm_s3:8.0f} "
+        f"{fig.max_chord_error_mm / delta:6.3f}"
+    )
+
+
+def first_block(curve: NurbsCurve) -> tuple[float, float]:
+    """CPU time (s) and peak traced memory (MB) from Path() to the first block."""
+    tracemalloc.start()
+    started = time.process_time()
+    path = Path(curve, limits(1e-3), T)
+    next(stream_setpoints(path, limits(1e-3), T))
+    elapsed = time.process_time() - started
+    peak = tracemalloc.get_traced_memory()[1] / 1e6
+    tracemalloc.stop()
+    return elapsed, peak
+
+
+def replan_first_block_s(curve: NurbsCurve, ratio: float = 1.2) -> float:
+    """CPU time from a re-plan call at a mid-path state (override) to its first block."""
+    lim = limits(1e-3)
+    path = Path(curve, lim, T)
+    blocks = stream_setpoints(path, lim, T, block_periods=64)
+    block = next(blocks)
+    while block.accel_mm_s2[-1] == 0.0 and not block.last:
+        block = next(blocks)
+    state = block.state(len(block) // 2)
+    best = float("inf")
+    for _ in range(REPEATS):
+        started = time.process_time()
+        next(stream_setpoints(path, lim.with_feed_override(ratio), T, start=state))
+        best = min(best, time.process_time() - started)
+    return best
+
+
 def main() -> None:
     curve = paper_curve()
+    print("Motion time against the acceleration-limited bound and the jerk-limited reference")
+    print("(delta in um; |a|, |j| and chord error / delta measured on the setpoints)")
+    print(
+        f"{'curve':14s} {'delta':>5s} {'motion':>8s} {'bound':>8s} {'/bound':>6s} "
+        f"{'ref':>8s} {'/ref':>6s} {'feed':>7s} {'|a|':>7s} {'|j|':>8s} {'chord':>6s}"
+    )
+    for delta in (1e-4, 5e-4, 1e-3):
+        optimality_row("paper", curve, delta)
+    for family in ("cusps", "loops", "free"):
+        for seed, c in zip(FAMILY_SEEDS, cf.family(family, FAMILY_SEEDS), strict=True):
+            optimality_row(f"{family} {seed}", c, 1e-3)
+    print()
+    print("First block: CPU time from Path() to the first block, peak traced memory over it")
+    print(f"{'spans':>8s} {'curve build s':>14s} {'first block s':>14s} {'peak MB':>8s}")
+    figures = {}
+    for spans in (1_000, 100_000):
+        started = time.process_time()
+        c = random_curve(spans, seed=3, turn_rad=0.15, step_mm=2.0)
+        built = time.process_time() - started
+        figures[spans] = first_block(c)
+        print(f"{spans:8d} {built:14.3f} {figures[spans][0]:14.3f} {figures[spans][1]:8.1f}")
+    print(
+        f"ratio 100,000 / 1,000: time {figures[100_000][0] / figures[1_000][0]:.2f}, "
+        f"memory growth {figures[100_000][1] - figures[1_000][1]:+.1f} MB"
+    )
+    print()
     print("Real-time factor (motion time / CPU time to prepare, plan and interpolate)")
     print(
-        f"{'curve':32s} {'spans':>6s} {'length mm':>10s} {'motion s':>9s} {'CPU s':>7s} {'RT':>7s}"
+        f"{'curve':28s} {'spans':>6s} {'length mm':>10s} {'motion s':>9s} {'CPU s':>7s} "
+        f"{'RT':>7s} {'cold RT':>8s}"
     )
     for name, c in (
         ("paper, delta 1 um", curve),
         ("random smooth, delta 1 um", random_curve(2000)),
         ("random winding, delta 1 um", random_curve(1000, seed=3, turn_rad=0.5, step_mm=3.0)),
     ):
+        _, _, cold = timed_plan(c, limits(1e-3))
         path, block, cpu = timed_plan(c, limits(1e-3), repeats=REPEATS, budget_s=REPEAT_BUDGET_S)
         motion = (len(block) - 1) * T
         print(
-            f"{name:32s} {len(c.breakpoints) - 1:6d} {path.length_mm:10.1f} {motion:9.2f} "
-            f"{cpu:7.3f} {motion / cpu:7.0f}"
+            f"{name:28s} {len(c.breakpoints) - 1:6d} {path.length_mm:10.1f} {motion:9.2f} "
+            f"{cpu:7.3f} {motion / cpu:7.0f} {motion / cold:8.0f}"
         )
     print()
-    print("Paper curve: motion time / acceleration-limited bound (same vmax, chord, amax)")
     print(
-        f"{'delta um':>8s} {'motion s':>9s} {'bound s':>8s} {'ratio':>6s} "
-        f"{'feed':>7s} {'|a|':>7s} {'|j|':>8s} {'chord um':>9s}"
+        "Re-plan from a mid-path state (override 120 %): CPU time from the call to the first block"
     )
-    for delta in (1e-4, 5e-4, 1e-3):
-        _, block, _ = timed_plan(curve, limits(delta))
-        fig = sc.measure(curve, block.u, block.position_mm, T)
-        bound = sc.acceleration_bound_time_s(
-            curve, lambda u, d=delta: chord_error_feed(curve.curvature(u), d, T), 100.0, 1000.0
-        )
-        print(
-            f"{delta * 1e3:8.1f} {fig.motion_time_s:9.3f} {bound:8.3f} "
-            f"{fig.motion_time_s / bound:6.3f} {fig.max_feed_mm_s:7.2f} "
-            f"{fig.max_accel_mm_s2:7.1f} {fig.max_jerk_mm_s3:8.0f} "
-            f"{fig.max_chord_error_mm * 1e3:9.4f}"
-        )
+    for name, c in (("paper", curve), ("random smooth, 2000 spans", random_curve(2000))):
+        print(f"{name:28s} {replan_first_block_s(c) * 1e3:7.2f} ms")
     print()
     print("Feed fluctuation |realised/planned - 1| on the paper curve, delta 1 um")
     print(

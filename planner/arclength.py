@@ -4,7 +4,9 @@ The parameter update of the paper (Wang, Zhao, Lu, Liu, China Mechanical Enginee
 2012, 299-304), eq. (2), predicts u by a Taylor expansion; its drift is removed by solving
 s(u) = s_target with the exact arc length, s(u) = integral of |C'(t)| dt from the first knot.
 
-The table is built once per curve. The speed |C'| is smooth inside a knot span; on each table
+The table is built lazily, in chunks of ``CHUNK_SPANS`` knot spans in order along the curve,
+when a query first reaches them (a stream's first setpoints need only the first chunk, however
+long the curve). The speed |C'| is smooth inside a knot span; on each table
 interval it is replaced by its Chebyshev interpolant of ``CHEBYSHEV_NODES`` nodes, and an
 interval whose last two coefficients say the interpolant is not accurate to ``_RTOL`` of the
 interval's length (plus a tiny absolute floor) is halved, starting from the knot spans (cut
@@ -24,7 +26,8 @@ Units: s and lengths in mm, u dimensionless.
 Accuracy: about 1e-11 relative to the curve length for s(u) where |C'| is smooth (at a cusp
 inside a span, down to the absolute floor); u(s) meets |s(u) - s| <= 1e-10 mm, or the bracket
 shrinks to a few ulp of x.
-Thread safety: immutable after construction; may be shared between threads.
+Thread safety: the table grows on first use, so one thread at a time may query it; once
+complete (after :attr:`ArcLengthTable.length_mm`), it no longer changes and may be shared.
 Not modelled: lengths of offset curves or of anything but the curve itself.
 """
 
@@ -44,10 +47,13 @@ CHEBYSHEV_NODES = 16
 MIN_INTERVALS = 16
 #: Estimated error of an interval's length allowed, relative to that length.
 _RTOL = 1e-11
-#: Absolute floor of that error, relative to the curve length; ends refinement at cusps.
+#: Absolute floor of that error, relative to the length of the control polygon (at least the
+#: curve's); ends refinement at cusps.
 _ATOL_PER_LENGTH = 1e-14
 #: Halvings after which an interval is accepted regardless.
 _MAX_LEVELS = 60
+#: Knot spans per chunk of the table (built when a query first needs it).
+CHUNK_SPANS = 256
 #: Curve evaluations per call while the table is built (bounds its memory on long curves).
 _EVALUATION_CHUNK = 1 << 16
 #: Target |s(u) - s| of u_of_s, mm.
@@ -71,46 +77,78 @@ _SQUARES = np.arange(CHEBYSHEV_NODES) ** 2.0
 
 
 class ArcLengthTable:
-    """Arc length s(u) of a curve, accurate to ~1e-11 relative, built once per curve.
+    """Arc length s(u) of a curve, accurate to ~1e-11 relative, built lazily chunk by chunk.
+
+    The table is built in chunks of ``CHUNK_SPANS`` knot spans, in order along the curve, when
+    a query first needs one: :meth:`s_of_u` up to the chunk of its largest parameter,
+    :meth:`u_of_s` until its largest arc length is covered. :attr:`length_mm`, :attr:`u_grid`
+    and :attr:`s_grid` need the whole table (on a 100,000-span curve about half a second of
+    CPU time and 50 MB); :meth:`extent_mm` answers "where does the curve end, if before s?"
+    with only the chunks up to s.
 
     :param curve: the curve.
     """
 
     def __init__(self, curve: NurbsCurve) -> None:
         self.curve = curve
-        lo, hi, speed = _build_table(curve)
-        half = 0.5 * (hi - lo)
-        # |C'| = sum a_k T_k(x) with u = lo + (x + 1) half; its antiderivative from x = -1,
-        # times half, is the arc length from the interval's start in mm.
-        self._ds_dx = speed * half[:, None]
-        self._length = _antiderivative(speed) * half[:, None]
-        self._lo, self._hi, self._half = lo, hi, half
-        self._u_grid = np.append(lo, hi[-1])
-        self._s_grid = np.concatenate([[0.0], np.cumsum(self._length.sum(axis=1))])
-        for array in (self._u_grid, self._s_grid):
-            array.flags.writeable = False
-        self.length_mm = float(self._s_grid[-1])
-        # |C'| and d|C'|/du at each interval's start and end (T_k(+-1) = (+-1)^k,
-        # T_k'(+-1) = (+-1)^(k+1) k^2), for the Hermite guess of u(s).
-        ends = np.stack([speed @ _SIGNS, speed.sum(axis=1)], axis=1)
-        slopes = np.stack([-(speed @ (_SIGNS * _SQUARES)), speed @ _SQUARES], axis=1)
-        slopes /= half[:, None]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            self._du_ds = 1.0 / ends
-            self._d2u_ds2 = -slopes / ends**3
-        # |d2s/dx2| <= half sum k^2 |a_k| (|T_k'| <= k^2): bounds the error of a Newton step.
-        self._d2s_dx2_bound = half * (np.abs(speed) @ _SQUARES)
+        self._breaks = curve.breakpoints
+        spans = len(self._breaks) - 1
+        self._split = -(-MIN_INTERVALS // spans)
+        polygon_mm = float(np.linalg.norm(np.diff(curve.control_points, axis=0), axis=1).sum())
+        self._floor_mm = _ATOL_PER_LENGTH * polygon_mm
+        self._chunk_count = -(-spans // CHUNK_SPANS)
+        self._chunks: list[_Chunk] = []
+        # Arc length at the start of each built chunk, and at the end of the last one.
+        self._chunk_s = np.zeros(1)
+        self._whole: _Chunk | None = None
+
+    @property
+    def complete(self) -> bool:
+        """Whether the whole curve is in the table (its length is known)."""
+        return len(self._chunks) == self._chunk_count
+
+    @property
+    def built_mm(self) -> float:
+        """Arc length covered by the chunks built so far, in mm."""
+        return float(self._chunk_s[-1])
+
+    @property
+    def length_mm(self) -> float:
+        """Length of the curve in mm (builds the whole table)."""
+        self._cover(np.inf)
+        return self.built_mm
+
+    def extent_mm(self, s_mm: float) -> float:
+        """min(s_mm, length of the curve): builds only the chunks up to s_mm."""
+        self._cover(s_mm)
+        return min(s_mm, self.built_mm) if self.complete else s_mm
+
+    def breakpoint_s(self, first: int, last: int) -> np.ndarray:
+        """Arc lengths of breakpoints ``first`` to ``last`` (inclusive), in mm."""
+        c0, c1 = first // CHUNK_SPANS, max(last - 1, first) // CHUNK_SPANS
+        self._build_chunk(c1)
+        # Neighbouring chunks share a breakpoint: each after the first drops its start.
+        s = np.concatenate([self._chunks[c].break_s[(c > c0) :] for c in range(c0, c1 + 1)])
+        return s[first - c0 * CHUNK_SPANS : last - c0 * CHUNK_SPANS + 1]
+
+    def span_at_s(self, s_mm: float) -> int:
+        """Index of the knot span holding arc length s_mm (the last span beyond the end)."""
+        self._cover(s_mm)
+        c = min(int(np.searchsorted(self._chunk_s, s_mm, side="right")) - 1, len(self._chunks) - 1)
+        chunk = self._chunks[max(c, 0)]
+        local = int(np.searchsorted(chunk.break_s, s_mm, side="right")) - 1
+        return max(c, 0) * CHUNK_SPANS + min(max(local, 0), len(chunk.break_s) - 2)
 
     @property
     def u_grid(self) -> np.ndarray:
         """Parameters of the table's interval ends, ascending, from the first to the last knot
-        (every breakpoint among them; read-only)."""
-        return self._u_grid
+        (every breakpoint among them; read-only; builds the whole table)."""
+        return self._whole_table().u_grid
 
     @property
     def s_grid(self) -> np.ndarray:
         """Arc length at :attr:`u_grid` in mm, from 0 to :attr:`length_mm` (read-only)."""
-        return self._s_grid
+        return self._whole_table().s_grid
 
     def s_of_u(self, u: ArrayLike) -> np.ndarray:
         """Arc length from the start of the curve to each parameter, in mm.
@@ -120,13 +158,19 @@ class ArcLengthTable:
         :raises CurveError: for a parameter outside the domain or not finite.
         """
         params = _checked(u, "u", *self.curve.domain)
-        i = np.minimum(np.searchsorted(self._u_grid, params, side="right") - 1, self._last)
-        x = self._local(i, params)
-        s = self._s_grid[i] + _series(_chebyshev_t(x, CHEBYSHEV_NODES + 1), self._length[i].T)
-        at_start = params == self._lo[i]
-        s[at_start] = self._s_grid[i][at_start]
-        s[params == self._u_grid[-1]] = self.length_mm
-        return s
+        if params.size == 0:
+            return params.copy()
+        spans = np.minimum(
+            np.searchsorted(self._breaks, params, side="right") - 1, len(self._breaks) - 2
+        )
+        chunk_of = spans // CHUNK_SPANS
+        self._build_chunk(int(chunk_of.max()))
+        out = np.empty(params.size)
+        for c in np.unique(chunk_of).tolist():
+            rows = chunk_of == c
+            out[rows] = self._chunks[c].s_of_u(params[rows])
+        out[params == self._breaks[-1]] = self.built_mm
+        return out
 
     def u_of_s(self, s: ArrayLike, u_guess: ArrayLike | None = None) -> np.ndarray:
         """Parameter at each arc length, inverse of :meth:`s_of_u`.
@@ -139,9 +183,14 @@ class ArcLengthTable:
         :raises CurveError: for an arc length outside [0, length_mm] or not finite, or a guess
             of the wrong size.
         """
-        target = _checked(s, "s", 0.0, self.length_mm)
-        i = np.minimum(np.searchsorted(self._s_grid, target, side="right") - 1, self._last)
-        u = self._hermite_guess(i, target)
+        target = _as_array(s, "s")
+        valid = (target >= 0.0) & (target < np.inf)
+        top = float(target[valid].max()) if valid.any() else 0.0
+        self._cover(top)
+        if not valid.all() or top > self.built_mm:
+            # The message names the length: the error path may build the whole table.
+            _checked(target, "s", 0.0, self.length_mm)
+        guess = None
         if u_guess is not None:
             guess = np.asarray(u_guess, dtype=np.float64).ravel()
             if guess.shape != target.shape:
@@ -150,21 +199,120 @@ class ArcLengthTable:
                     f"got {guess.size} values for {target.size} arc lengths, must match",
                     rule=CurveRule.PARAMETER,
                 )
-            inside = (guess >= self._lo[i]) & (guess <= self._hi[i])
-            u[inside] = guess[inside]
-        x = self._newton(i, self._local(i, u), target - self._s_grid[i])
-        # Exact at both ends of the interval.
-        u = np.where(
-            x <= 0.0,
-            self._lo[i] + (x + 1.0) * self._half[i],
-            self._hi[i] - (1.0 - x) * self._half[i],
+        chunk_of = np.minimum(
+            np.searchsorted(self._chunk_s, target, side="right") - 1, len(self._chunks) - 1
         )
-        u[target == self.length_mm] = self._u_grid[-1]
-        return u
+        out = np.empty(target.size)
+        for c in np.unique(chunk_of).tolist():
+            rows = chunk_of == c
+            out[rows] = self._chunks[c].u_of_s(target[rows], None if guess is None else guess[rows])
+        if self.complete:
+            out[target == self.built_mm] = self._breaks[-1]
+        return out
+
+    def _cover(self, s_mm: float) -> None:
+        """Build chunks until one holds s_mm strictly inside or the curve ends."""
+        while not self.complete and self.built_mm <= s_mm:
+            self._build_chunk(len(self._chunks))
+
+    def _build_chunk(self, index: int) -> None:
+        """Build chunks in order up to ``index`` (inclusive)."""
+        while len(self._chunks) <= min(index, self._chunk_count - 1):
+            c = len(self._chunks)
+            first, last = c * CHUNK_SPANS, min((c + 1) * CHUNK_SPANS, len(self._breaks) - 1)
+            chunk = _Chunk(
+                self.curve,
+                self._breaks[first : last + 1],
+                self._split,
+                self._floor_mm,
+                float(self._chunk_s[-1]),
+            )
+            self._chunks.append(chunk)
+            self._chunk_s = np.append(self._chunk_s, chunk.s_end)
+
+    def _whole_table(self) -> _Chunk:
+        if self._whole is None:
+            self._cover(np.inf)
+            self._whole = _Chunk.joined(self._chunks)
+        return self._whole
+
+
+class _Chunk:
+    """The table over consecutive knot spans: Chebyshev series of |C'| and of s on intervals."""
+
+    def __init__(
+        self,
+        curve: NurbsCurve | None,
+        breaks: np.ndarray,
+        split: int,
+        floor_mm: float,
+        s_start: float,
+        table: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> None:
+        lo, hi, speed = table if table is not None else _build_table(curve, breaks, split, floor_mm)
+        half = 0.5 * (hi - lo)
+        # |C'| = sum a_k T_k(x) with u = lo + (x + 1) half; its antiderivative from x = -1,
+        # times half, is the arc length from the interval's start in mm.
+        self._speed = speed
+        self._ds_dx = speed * half[:, None]
+        self._length = _antiderivative(speed) * half[:, None]
+        self._lo, self._hi, self._half = lo, hi, half
+        self.u_grid = np.append(lo, hi[-1])
+        self.s_grid = s_start + np.concatenate([[0.0], np.cumsum(self._length.sum(axis=1))])
+        for array in (self.u_grid, self.s_grid):
+            array.flags.writeable = False
+        self.s_end = float(self.s_grid[-1])
+        self.breaks = breaks
+        self.break_s = self.s_grid[np.searchsorted(self.u_grid, breaks)]
+        # |C'| and d|C'|/du at each interval's start and end (T_k(+-1) = (+-1)^k,
+        # T_k'(+-1) = (+-1)^(k+1) k^2), for the Hermite guess of u(s).
+        ends = np.stack([speed @ _SIGNS, speed.sum(axis=1)], axis=1)
+        slopes = np.stack([-(speed @ (_SIGNS * _SQUARES)), speed @ _SQUARES], axis=1)
+        slopes /= half[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self._du_ds = 1.0 / ends
+            self._d2u_ds2 = -slopes / ends**3
+        # |d2s/dx2| <= half sum k^2 |a_k| (|T_k'| <= k^2): bounds the error of a Newton step.
+        self._d2s_dx2_bound = half * (np.abs(speed) @ _SQUARES)
+
+    @staticmethod
+    def joined(chunks: list[_Chunk]) -> _Chunk:
+        """One chunk holding the intervals of consecutive ``chunks``."""
+        if len(chunks) == 1:
+            return chunks[0]
+        table = tuple(
+            np.concatenate([getattr(c, name) for c in chunks]) for name in ("_lo", "_hi", "_speed")
+        )
+        breaks = np.unique(np.concatenate([c.breaks for c in chunks]))
+        return _Chunk(None, breaks, 0, 0.0, 0.0, table)
 
     @property
     def _last(self) -> int:
         return len(self._lo) - 1
+
+    def s_of_u(self, params: np.ndarray) -> np.ndarray:
+        i = np.minimum(np.searchsorted(self.u_grid, params, side="right") - 1, self._last)
+        x = self._local(i, params)
+        s = self.s_grid[i] + _series(_chebyshev_t(x, CHEBYSHEV_NODES + 1), self._length[i].T)
+        at_start = params == self._lo[i]
+        s[at_start] = self.s_grid[i][at_start]
+        s[params == self.u_grid[-1]] = self.s_end
+        return s
+
+    def u_of_s(self, target: np.ndarray, guess: np.ndarray | None) -> np.ndarray:
+        i = np.minimum(np.searchsorted(self.s_grid, target, side="right") - 1, self._last)
+        i = np.maximum(i, 0)
+        u = self._hermite_guess(i, target)
+        if guess is not None:
+            inside = (guess >= self._lo[i]) & (guess <= self._hi[i])
+            u[inside] = guess[inside]
+        x = self._newton(i, self._local(i, u), target - self.s_grid[i])
+        # Exact at both ends of the interval.
+        return np.where(
+            x <= 0.0,
+            self._lo[i] + (x + 1.0) * self._half[i],
+            self._hi[i] - (1.0 - x) * self._half[i],
+        )
 
     def _local(self, i: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x in [-1, 1] of u on interval i, exactly -1 and 1 at its ends."""
@@ -178,7 +326,7 @@ class ArcLengthTable:
         linear interpolation instead.
         """
         u0, u1 = self._lo[i], self._hi[i]
-        s0, s1 = self._s_grid[i], self._s_grid[i + 1]
+        s0, s1 = self.s_grid[i], self.s_grid[i + 1]
         v0, v1 = self._du_ds[i, 0], self._du_ds[i, 1]
         w0, w1 = self._d2u_ds2[i, 0], self._d2u_ds2[i, 1]
         h = s1 - s0
@@ -269,15 +417,19 @@ def _antiderivative(coefficients: np.ndarray) -> np.ndarray:
     return result
 
 
-def _checked(values: ArrayLike, name: str, low: float, high: float) -> np.ndarray:
+def _as_array(values: ArrayLike, name: str) -> np.ndarray:
     try:
-        array = np.asarray(values, dtype=np.float64).ravel()
+        return np.asarray(values, dtype=np.float64).ravel()
     except (TypeError, ValueError) as exc:
         raise CurveError(
             name,
             f"got {values!r}, must be a number or an array of numbers",
             rule=CurveRule.PARAMETER,
         ) from exc
+
+
+def _checked(values: ArrayLike, name: str, low: float, high: float) -> np.ndarray:
+    array = _as_array(values, name)
     outside = ~((array >= low) & (array <= high))
     if outside.any():
         bad = array[np.argmax(outside)]
@@ -299,22 +451,20 @@ def _speeds(curve: NurbsCurve, u: np.ndarray) -> np.ndarray:
     return out.reshape(u.shape)
 
 
-def _build_table(curve: NurbsCurve) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Intervals (lo, hi), ascending, and the Chebyshev coefficients of |C'| on each."""
-    breaks = curve.breakpoints
-    split = -(-MIN_INTERVALS // (len(breaks) - 1))
+def _build_table(
+    curve: NurbsCurve, breaks: np.ndarray, split: int, floor: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intervals (lo, hi), ascending, over the spans between ``breaks`` (each first cut into
+    ``split`` equal parts), and the Chebyshev coefficients of |C'| on each."""
     edges = np.linspace(breaks[:-1], breaks[1:], split + 1, axis=1)
     lo, hi = edges[:, :-1].ravel(), edges[:, 1:].ravel()
     lo, hi = lo[hi > lo], hi[hi > lo]  # a span a few ulp wide has fewer distinct parts
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    floor = None
     for level in range(_MAX_LEVELS + 1):
         half = 0.5 * (hi - lo)
         speed = _speeds(curve, (0.5 * (lo + hi))[:, None] + half[:, None] * _NODES)
         coefficients = speed @ _TO_COEFFICIENTS
         length = half * (coefficients[:, _EVEN] @ _EVEN_INTEGRALS)
-        if floor is None:
-            floor = _ATOL_PER_LENGTH * float(length.sum())
         # The last coefficients stand for the tail the interpolant leaves out; a term's
         # antiderivative stays within 2 half over the interval.
         error = 2.0 * half * np.abs(coefficients[:, -2:]).sum(axis=1)

@@ -69,14 +69,16 @@ class Interpolator:
         self._s = float(s_start_mm)
         # Only taylor2 steps from the previous parameter; corrected solves each row afresh.
         self._u = (
-            float(arc.u_of_s(min(max(s_start_mm, 0.0), arc.length_mm))[0])
+            float(arc.u_of_s(arc.extent_mm(max(s_start_mm, 0.0)))[0])
             if self.update is ParameterUpdate.TAYLOR2
             else float("nan")
         )
 
     def parameters(self, s_mm: np.ndarray) -> np.ndarray:
         """u for each planned arc length in ``s_mm`` (consecutive rows of the stream)."""
-        s_mm = np.clip(np.asarray(s_mm, dtype=np.float64), 0.0, self._arc.length_mm)
+        s_mm = np.maximum(np.asarray(s_mm, dtype=np.float64), 0.0)
+        if s_mm.size:
+            s_mm = np.minimum(s_mm, self._arc.extent_mm(float(s_mm.max())))
         if s_mm.size == 0:
             return s_mm.copy()
         if self.update is ParameterUpdate.CORRECTED:

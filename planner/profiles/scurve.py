@@ -15,8 +15,9 @@ and 7.5 mm (the look-ahead distance of section 2.2).
 
 Units: mm, s; speeds mm/s, A mm/s², J mm/s³. Pure functions on floats; thread-safe.
 
-Not modelled: non-zero acceleration at the ends of a ramp (a start state with acceleration is
-first brought to zero acceleration by :func:`settle_phases`).
+Not modelled here: non-zero acceleration at the ends of a ramp (a start state with acceleration
+is first brought to zero acceleration by :func:`settle_phases`; changes between states with
+acceleration are :mod:`planner.profiles.transition`).
 """
 
 from __future__ import annotations

@@ -11,21 +11,13 @@ import pytest
 import setpoint_checks as sc
 import yaml
 
-from planner.lookahead import (
-    CHORD_MARGIN,
-    FeedEnvelope,
-    PlanLimits,
-    _brake_first,
-    _Checker,
-    _passes,
-    _refine,
-    _segment,
-    _sensitive_points,
-    _Window,
-)
+from planner.checker import Checker
+from planner.envelope import CHORD_MARGIN, FeedEnvelope
 from planner.nurbs import NurbsCurve
+from planner.refine import PIN_MARGIN, brake_first, refine
 from planner.stream import Path, plan_setpoints, stream_setpoints
 from planner.types import Limits, MotionState, SetpointBlock
+from planner.window import PlanLimits, Window, passes, segment_plan, sensitive_points
 
 T = 0.004
 LIMITS = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-3)
@@ -60,7 +52,7 @@ def joined(first: SetpointBlock, k: int, second: SetpointBlock):
 
 def test_sensitive_point_at_the_curvature_maximum(path):
     s_env, v_env = path.envelope.query(0.0, path.length_mm)
-    s, cap, fv = _sensitive_points(s_env, v_env, 0.0, path.length_mm, 100.0)
+    s, cap, fv = sensitive_points(s_env, v_env, 0.0, path.length_mm, 100.0)
     # The start and one curvature maximum; the limit is held over one step either side of it,
     # so the maximum may show as the two edges of a short plateau.
     assert len(s) in (2, 3) and s[-1] - s[1] < 2 * 0.4
@@ -81,7 +73,7 @@ def test_frequent_speed_change_region_is_flagged(curve):
     )
     p = Path(wave, limits, T)
     s_env, v_env = p.envelope.query(0.0, p.length_mm)
-    _, _, fv = _sensitive_points(s_env, v_env, 0.0, p.length_mm, 100.0)
+    _, _, fv = sensitive_points(s_env, v_env, 0.0, p.length_mm, 100.0)
     assert any(fv[1:])  # F_v_plan = 1 between curvature maxima that never reach vmax
     block = plan_setpoints(p, limits, T)
     fig = sc.measure(wave, block.u, block.position_mm, T)
@@ -189,7 +181,7 @@ def test_released_segments_cover_exactly_their_stretch():
     assert np.abs(np.diff(block.s_mm) - mid_feed * T).max() < 0.02 * 20.0 * T
 
 
-def test_a_start_too_fast_for_a_staircase_brakes_in_one_segment():
+def test_a_start_too_fast_for_a_staircase_brakes_in_onesegment_plan():
     # A feed limit falling from 30 to 10 mm/s over 2 mm, refined into points 0.1 mm apart: each
     # is a point of zero acceleration, so from 40 mm/s the staircase cannot brake in time.
     lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
@@ -197,11 +189,11 @@ def test_a_start_too_fast_for_a_staircase_brakes_in_one_segment():
     v_env = np.array([40.0, 30.0, 10.0, 10.0])
     points = [0.0, *np.round(np.arange(1.0, 3.0001, 0.1), 6).tolist(), 10.0]
     caps = [0.0, *np.interp(points[1:-1], s_env, v_env).tolist(), 0.0]
-    w = _Window(points, caps, [False] * (len(points) - 1))
-    v = _passes(w.s, w.cap, 40.0, lim)
+    w = Window(points, caps, [False] * (len(points) - 1))
+    v = passes(w.s, w.cap, 40.0, lim)
     assert any(v[k] > w.cap[k] for k in range(1, len(w.s)))
-    assert _brake_first(w, v, _Checker(s_env, v_env, lim))
-    v = _passes(w.s, w.cap, 40.0, lim)
+    assert brake_first(w, v, Checker(s_env, v_env, lim))
+    v = passes(w.s, w.cap, 40.0, lim)
     assert all(v[k] <= w.cap[k] * (1.0 + 1e-9) for k in range(1, len(w.s)))
     assert w.braking and w.peak_cap[0] <= 10.0
 
@@ -222,25 +214,27 @@ def test_envelope_dilation_is_exact_between_samples(path):
     assert np.all(np.diff(dilated) <= 0.0)
 
 
-def test_a_smooth_dip_of_the_feed_limit_takes_a_few_points():
+def test_a_smooth_dip_of_the_feed_limit_is_followed_by_points_pinned_on_it():
     # A convex dip to 60 mm/s with a flat bottom (as dilation leaves a curvature peak). Points
-    # capped at the limit itself were each exceeded next to them (a zero-acceleration point
-    # meets a rising limit too flat) and the segment along the bottom was split again and again:
-    # over 500 points, until the fallback flattened them. Splitting towards the bottom would
-    # still take a point per halving of the gap; close to it a segment cruises at its slower
-    # end's feed instead.
+    # of zero acceleration capped at the limit itself were each exceeded next to them and the
+    # segment along the bottom was split again and again (over 500 points); a staircase of
+    # zero-acceleration points capped lower took 8 points and 0.629 s. Points pinned on the
+    # limit with its slope follow the sides: a bounded number of points, every segment under
+    # the limit, and a quicker plan.
     lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
     s_env = np.linspace(0.0, 40.0, 401)
     v_env = np.minimum(60.0 + 0.8 * np.maximum(np.abs(s_env - 20.0) - 0.2, 0.0) ** 2, 150.0)
-    pts, cap, fv = _sensitive_points(s_env, v_env, 0.0, 40.0, lim.vmax_mm_s)
-    w = _Window([*pts, 40.0], [*cap, 0.0], [*fv, False])
-    checker = _Checker(s_env, v_env, lim)
-    v = _refine(w, checker, 0.0, lim)
-    assert len(w.s) <= 10
-    segments = [(w.s[k], v[k], *_segment(w, k, v, lim), w.s[k + 1]) for k in range(len(w.s) - 1)]
+    pts, cap, fv = sensitive_points(s_env, v_env, 0.0, 40.0, lim.vmax_mm_s)
+    w = Window([*pts, 40.0], [*cap, 0.0], [*fv, False])
+    checker = Checker(s_env, v_env, lim)
+    v = refine(w, checker, 0.0, lim)
+    assert len(w.s) <= 20 and any(w.pinned)
+    plans = [segment_plan(w, k, v, lim) for k in range(len(w.s) - 1)]
+    segments = [(w.s[k], v[k], *plan, w.s[k + 1], w.acc[k]) for k, plan in enumerate(plans)]
     assert checker.worst_of(segments) == [None] * len(segments)
-    # The plan reaches the bottom of the dip at its limit, not a step below it.
-    assert min(v[1:-1]) == pytest.approx(60.0)
+    assert sum(p.duration_s for plan in plans for p in plan[0]) < 0.629
+    # The plan reaches the bottom of the dip at its limit, less the pinned points' margin.
+    assert min(v[1:-1]) >= 60.0 * (1.0 - PIN_MARGIN) - 1e-9
 
 
 def test_first_block_of_a_long_curve_is_fast():

@@ -52,6 +52,11 @@ def curves(draw) -> NurbsCurve:
     curve=curves(), delta=st.sampled_from([1e-4, 1e-3, 1e-2]), vmax=st.sampled_from([20.0, 100.0])
 )
 def test_random_curves_keep_every_limit(curve, delta, vmax):
+    assert_every_limit_holds(curve, delta, vmax)
+
+
+def assert_every_limit_holds(curve: NurbsCurve, delta: float, vmax: float) -> None:
+    """Plan ``curve`` and check every limit on its 4 ms setpoints (amax 1000, jmax 20000)."""
     limits = Limits(vmax_mm_s=vmax, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=delta)
     block = plan_setpoints(Path(curve, limits, T), limits, T)
     assert np.isfinite(block.position_mm).all() and np.isfinite(block.u).all()

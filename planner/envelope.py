@@ -1,0 +1,384 @@
+"""Geometric feed limit along the arc length, v_limit(s), built lazily chunk by chunk.
+
+Source: the pre-interpolation of section 2.2 of Wang, Zhao, Lu, Liu, China Mechanical
+Engineering 23(3), 2012, 299-304: the feed limit of eq. (4) (and the optional limits of
+:mod:`planner.feed`) is sampled on a grid of every knot span, the curvature maxima refined, in
+place of the paper's step-by-step pre-interpolation at vmax.
+
+Beyond the paper: each sample is lowered to the limits a period's step from it can reach (the
+dilation, exact for the piecewise-linear limit between samples), so that a step never sees a
+larger curvature than planned; sharp corners and cusps (C'(u) = 0 with a turning tangent) are
+stops (limit 0) with a grid refined towards them; the curvature maxima are located by
+a shrinking grid search of the curvature itself, so that a tip far narrower than the grid is
+planned at its own radius.
+
+Units: s in mm, feeds in mm/s, u dimensionless. Chunks of ``CHUNK_SPANS`` knot spans are
+computed when a query first reaches them and the last ``CACHE_CHUNKS`` are kept, so memory does
+not grow with the length of the curve. One envelope per path; not thread-safe (it shares the
+lazily built arc-length table).
+
+Invariants: samples are ascending in s; a zero limit is a stop; no NaN.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import replace
+
+import numpy as np
+
+from planner.arclength import ArcLengthTable
+from planner.feed import geometric_feed_limit
+from planner.nurbs import NurbsCurve
+from planner.types import Limits
+
+#: Target spacing of the envelope grid along the path, mm.
+GRID_SPACING_MM = 0.4
+#: Grid samples per knot span, at least and at most.
+GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN = 8, 128
+#: Relative change of the feed limit across a grid interval above which it is halved, and the
+#: most halvings.
+TIGHT_CHANGE, TIGHT_LEVELS = 0.05, 8
+#: Knot spans per envelope chunk, and chunks kept in the cache.
+CHUNK_SPANS, CACHE_CHUNKS = 256, 16
+#: Feed limits below this are treated as a stop, mm/s.
+MIN_FEED_MM_S = 1e-6
+#: 1 - cos of the tangent turn at a knot above which the knot is a sharp corner.
+CORNER_COS_TOL = 1e-12
+#: Ternary-search steps locating a cusp inside a span.
+CUSP_SEARCH_STEPS = 60
+#: Rounds and points per round of the search of a curvature maximum between its grid
+#: neighbours (each round shrinks the bracket to 2 / (points + 1) of it).
+PEAK_SEARCH_STEPS, PEAK_SEARCH_POINTS = 6, 9
+#: Halvings of the grid towards a sharp corner (C'(u) = 0).
+CORNER_REFINEMENTS = 30
+#: The envelope dilation assumes feed overrides up to this ratio of the path's vmax.
+MAX_OVERRIDE_RATIO = 2.0
+#: Fraction of the chord error kept as margin when planning.
+CHORD_MARGIN = 0.03
+
+
+def curvature_rises(d1: np.ndarray, d2: np.ndarray, d3: np.ndarray) -> np.ndarray:
+    """Whether dkappa/du > 0, from the rows of C', C'' and the third derivative D3.
+
+    With c = C' x C'' (dc/du = C' x D3), kappa = |c| / |C'|^3 and
+    dkappa/du = ((c . dc/du) |C'|^2 - 3 |c|^2 (C' . C'')) / (|c| |C'|^5): the numerator's sign.
+    """
+    if d1.shape[1] == 2:
+        c = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+        dc = d1[:, 0] * d3[:, 1] - d1[:, 1] * d3[:, 0]
+        c_dc, c_c = c * dc, c * c
+    else:
+        c, dc = np.cross(d1, d2), np.cross(d1, d3)
+        c_dc, c_c = np.einsum("ij,ij->i", c, dc), np.einsum("ij,ij->i", c, c)
+    speed2 = np.einsum("ij,ij->i", d1, d1)
+    return c_dc * speed2 - 3.0 * c_c * np.einsum("ij,ij->i", d1, d2) > 0.0
+
+
+class FeedEnvelope:
+    """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
+
+    Each grid sample carries the feed limit of :func:`planner.feed.geometric_feed_limit`, lowered
+    to the smallest limit, interpolated linearly between samples, within one period's step (T
+    times its own lowered limit, capped at ``MAX_OVERRIDE_RATIO`` x vmax) on either side and at
+    its grid neighbours, so that a step and the linear interpolation between samples never see
+    a larger curvature than planned. Sharp corners (feed limit 0) keep their single zero sample
+    and a grid refined towards them.
+    """
+
+    def __init__(
+        self, curve: NurbsCurve, arc: ArcLengthTable, limits: Limits, period_s: float
+    ) -> None:
+        self._curve = curve
+        self._arc = arc
+        self._limits = limits
+        self._T = period_s
+        self._breaks = curve.breakpoints
+        self._vcap_mm_s = MAX_OVERRIDE_RATIO * limits.vmax_mm_s
+        self._step_cap_mm = self._vcap_mm_s * period_s
+        # The sampled curvature can miss a little of a very sharp peak: plan a shade inside delta.
+        self._planning_limits = replace(
+            limits, chord_error_mm=limits.chord_error_mm * (1.0 - CHORD_MARGIN)
+        )
+        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+
+    @property
+    def spans(self) -> int:
+        """Number of non-empty knot spans."""
+        return len(self._breaks) - 1
+
+    def query(self, s_lo: float, s_hi: float) -> tuple[np.ndarray, np.ndarray]:
+        """Grid (s, v_limit) covering [s_lo, s_hi], from the sample at or before s_lo."""
+        first = self._arc.span_at_s(s_lo)
+        last = min(self._arc.span_at_s(s_hi) + 1, self.spans)
+        s_parts, v_parts = [], []
+        for chunk in range(first // CHUNK_SPANS, (max(last, first + 1) - 1) // CHUNK_SPANS + 1):
+            s, v = self._chunk(chunk)
+            if s_parts:
+                s, v = s[1:], v[1:]
+            s_parts.append(s)
+            v_parts.append(v)
+        s = np.concatenate(s_parts)
+        v = np.concatenate(v_parts)
+        i0 = max(int(np.searchsorted(s, s_lo, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(s, s_hi, side="left")) + 1, len(s))
+        return s[i0:i1], v[i0:i1]
+
+    def _chunk(self, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+        if chunk in self._cache:
+            self._cache.move_to_end(chunk)
+            return self._cache[chunk]
+        a = chunk * CHUNK_SPANS
+        b = min(a + CHUNK_SPANS, self.spans)
+        margin = self._step_cap_mm
+        s_a, s_b = self._arc.breakpoint_s(a, b)[[0, -1]]
+        # The samples within a step of the chunk's ends see the neighbouring spans too.
+        a_ext = max(self._arc.span_at_s(s_a - margin) - 1, 0)
+        b_ext = min(self._arc.span_at_s(s_b + margin) + 2, self.spans)
+        s, v = self._samples(a_ext, b_ext)
+        keep = (s >= s_a) & (s <= s_b)
+        result = (s[keep], v[keep])
+        self._cache[chunk] = result
+        if len(self._cache) > CACHE_CHUNKS:
+            self._cache.popitem(last=False)
+        return result
+
+    def _samples(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        breaks = self._breaks
+        lengths = np.diff(self._arc.breakpoint_s(a, b))
+        counts = np.clip(
+            np.ceil(lengths / GRID_SPACING_MM), GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN
+        ).astype(int)
+        span = np.repeat(np.arange(a, b), counts)
+        offsets = np.repeat(np.cumsum(counts) - counts, counts)
+        frac = (np.arange(counts.sum()) - offsets) / np.repeat(counts, counts)
+        u = np.append(breaks[span] + (breaks[span + 1] - breaks[span]) * frac, breaks[b])
+        # Curvature may jump at a knot (degree 2, repeated knots): keep the lower side's limit.
+        # A tangent that turns at a knot is a sharp corner: the feed must come to 0 there.
+        knot_rows = np.cumsum(counts)[:-1]
+        below = np.nextafter(u[knot_rows], -np.inf)
+        kappa, v, d1, rising = self._limit(np.concatenate([u, below]), slopes=True)
+        k_left, v_left, d_left = kappa[u.size :], v[u.size :], d1[u.size :]
+        kappa, v, d1 = kappa[: u.size], v[: u.size], d1[: u.size]
+        # Whether the curvature rises at each sample, and at the end of each grid interval
+        # seen from inside it (the left side of a knot).
+        rising_end = rising[1 : u.size].copy()
+        rising_end[knot_rows - 1] = rising[u.size :]
+        hidden = np.flatnonzero(rising[: u.size - 1] & ~rising_end)
+        if knot_rows.size:
+            v[knot_rows] = np.minimum(v[knot_rows], v_left)
+            kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
+            d_right = d1[knot_rows]
+            norms = np.linalg.norm(d_left, axis=1) * np.linalg.norm(d_right, axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cos_turn = np.sum(d_left * d_right, axis=1) / norms
+            corner = (norms > 0.0) & (cos_turn < 1.0 - CORNER_COS_TOL)
+            v[knot_rows[corner]] = 0.0
+            kappa[knot_rows[corner]] = np.inf
+        samples = (u, v)
+        extras = []
+        peaks = self._curvature_maxima(u, kappa, hidden)
+        if peaks.size:
+            # The tip and two neighbours a tenth of the grid interval away, so that the linear
+            # interpolation of the limit rises from the tip as the curvature falls.
+            i = np.clip(np.searchsorted(u, peaks), 1, len(u) - 1)
+            width = 0.1 * (u[i] - u[i - 1])
+            trio = np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1])
+            extras.append(self._sampled(trio.ravel()))
+        cusps = self._cusps(u, d1)
+        if cusps.size:
+            # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
+            samples = self._merged(samples, [(cusps, np.zeros(cusps.size))])
+        extras.append(self._sampled(self._corner_grid(samples[0], samples[1])))
+        extras.append(self._tight_midpoints(u, v))
+        u, v = self._merged(samples, extras)
+        s = np.maximum.accumulate(self._arc.s_of_u(u))
+        # Samples that round to one arc length (next to a corner) become one, with the lowest
+        # limit; limits below MIN_FEED_MM_S are a stop.
+        v = np.where(v < MIN_FEED_MM_S, 0.0, v)
+        fresh = np.concatenate([[True], np.diff(s) > 0.0])
+        starts = np.flatnonzero(fresh)
+        v = np.minimum.reduceat(v, starts)
+        s = s[starts]
+        return s, self._dilated(s, v)
+
+    def _limit(
+        self, u: np.ndarray, *, slopes: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """kappa, v_limit, C' and C'' at u; with ``slopes``, whether the curvature rises there
+        (dkappa/du > 0) in place of C''."""
+        if u.size == 0:
+            d = np.empty((0, self._curve.dimension))
+            return np.empty(0), np.empty(0), d, d
+        ders = self._curve.evaluate(u, order=3 if slopes else 2)
+        d1, d2 = ders[1], ders[2]
+        kappa, v = geometric_feed_limit(d1, d2, self._planning_limits, self._T)
+        return kappa, v, d1, curvature_rises(d1, d2, ders[3]) if slopes else d2
+
+    def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Samples (u, v_limit) at u."""
+        return u, self._limit(u)[1]
+
+    @staticmethod
+    def _merged(
+        samples: tuple[np.ndarray, np.ndarray], extras: list[tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Samples (u, v_limit) with the extra ones strictly inside them added, in order of u."""
+        lo, hi = samples[0][0], samples[0][-1]
+        parts = [samples]
+        for extra in extras:
+            inside = (extra[0] > lo) & (extra[0] < hi)
+            if inside.any():
+                parts.append(tuple(column[inside] for column in extra))
+        if len(parts) == 1:
+            return samples
+        u, v = (np.concatenate(columns) for columns in zip(*parts, strict=True))
+        order = np.argsort(u, kind="stable")
+        return u[order], v[order]
+
+    def _cusps(self, u: np.ndarray, d1: np.ndarray) -> np.ndarray:
+        """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).
+
+        Found where consecutive samples' tangents (``d1``, C' at u) turn by more than 60
+        degrees, by ternary search of the smallest |C'| between them.
+        """
+        dots = np.sum(d1[:-1] * d1[1:], axis=1)
+        norms = np.linalg.norm(d1[:-1], axis=1) * np.linalg.norm(d1[1:], axis=1)
+        turn = np.flatnonzero((norms > 0.0) & (dots < 0.5 * norms))
+        if turn.size == 0:
+            return np.empty(0)
+        lo, hi = u[turn].copy(), u[turn + 1].copy()
+        for _ in range(CUSP_SEARCH_STEPS):
+            a, b = lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0
+            speed = np.linalg.norm(self._curve.evaluate(np.concatenate([a, b]), order=1)[1], axis=1)
+            left = speed[: a.size] < speed[a.size :]
+            hi = np.where(left, b, hi)
+            lo = np.where(left, lo, a)
+        mid = 0.5 * (lo + hi)
+        reverses = dots[turn] < 0.0
+        return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
+
+    def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Samples (u, v_limit) added where the grid is coarse for the feed limit.
+
+        The limit is interpolated linearly between samples, which is only safe where it changes
+        little: an interval is halved, up to ``TIGHT_LEVELS`` times, while its limit changes by
+        more than ``TIGHT_CHANGE`` of the lower end, unless that is above any feed a plan of
+        this path may use. Stops (a zero limit) have a grid of their own.
+        """
+        lo, hi, v_lo, v_hi = u[:-1], u[1:], v[:-1], v[1:]
+        added = []
+        for _ in range(TIGHT_LEVELS):
+            low = np.minimum(v_lo, v_hi)
+            with np.errstate(invalid="ignore"):
+                coarse = (
+                    (low > 0.0)
+                    & (low < self._vcap_mm_s)
+                    & (np.abs(v_hi - v_lo) > TIGHT_CHANGE * low)
+                )
+            if not coarse.any():
+                break
+            mid = self._sampled(0.5 * (lo[coarse] + hi[coarse]))
+            added.append(mid)
+            lo, hi = np.concatenate([lo[coarse], mid[0]]), np.concatenate([mid[0], hi[coarse]])
+            v_lo, v_hi = (
+                np.concatenate([v_lo[coarse], mid[1]]),
+                np.concatenate([mid[1], v_hi[coarse]]),
+            )
+        if not added:
+            return np.empty(0), np.empty(0)
+        u_added, v_added = (np.concatenate(columns) for columns in zip(*added, strict=True))
+        return u_added, v_added
+
+    def _curvature_maxima(self, u: np.ndarray, kappa: np.ndarray, hidden: np.ndarray) -> np.ndarray:
+        """Parameters of the interior local maxima of curvature, by a shrinking grid search.
+
+        Each grid maximum brackets one between its neighbours, and each grid interval in
+        ``hidden`` (the curvature rising at its start and falling at its end: a peak between
+        two low samples) one between its ends; ``PEAK_SEARCH_STEPS`` times the
+        curvature is evaluated at ``PEAK_SEARCH_POINTS`` points across the bracket (all peaks
+        in one call) and the bracket shrinks to the best point's neighbours, so that a tip far
+        narrower than the grid (a near-cusp) is planned at its own radius (a parabola through
+        the grid samples would miss most of it).
+        """
+        k0, k1, k2 = kappa[:-2], kappa[1:-1], kappa[2:]
+        peak = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
+        if peak.size + hidden.size == 0:
+            return np.empty(0)
+        lo = np.concatenate([u[peak - 1], u[hidden]])
+        hi = np.concatenate([u[peak + 1], u[hidden + 1]])
+        inner = np.linspace(0.0, 1.0, PEAK_SEARCH_POINTS + 2)
+        best = 0.5 * (lo + hi)
+        for _ in range(PEAK_SEARCH_STEPS):
+            x = lo[:, None] + (hi - lo)[:, None] * inner
+            k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(lo), -1)
+            k = np.where(np.isfinite(k), k, np.inf)
+            i = np.argmax(k, axis=1) + 1
+            rows = np.arange(len(lo))
+            best, lo, hi = x[rows, i], x[rows, i - 1], x[rows, i + 1]
+        return best
+
+    @staticmethod
+    def _corner_grid(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Samples at geometrically shrinking distances from each zero-feed (corner) sample."""
+        corners = np.flatnonzero(v == 0.0)
+        if corners.size == 0:
+            return np.empty(0)
+        left = u[np.maximum(corners - 1, 0)]
+        right = u[np.minimum(corners + 1, len(u) - 1)]
+        scale = 0.5 ** np.arange(1, CORNER_REFINEMENTS + 1)
+        c = u[corners][:, None]
+        return np.concatenate(
+            [(c - (c - left[:, None]) * scale).ravel(), (c + (right[:, None] - c) * scale).ravel()]
+        )
+
+    def _dilated(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Lower each sample to the limits a period's step from it can reach.
+
+        A step from s_i at feed w is w T long, so the limit f (linear between samples) at
+        distance x constrains it when x <= w T: the largest consistent w is the infimum over
+        x >= 0, ahead and behind, of max(f(s_i +- x), x / T). On each grid interval that is
+        reached at an end or where f crosses x / T; using the samples alone would leave a
+        sawtooth of spurious minima (sensitive points) wherever the limit falls steeply. A
+        corner's zero constrains nothing (the plan stops on it instead).
+        """
+        if len(s) < 2:
+            return v.copy()
+        ahead = self._reachable(s, v)
+        behind = self._reachable(-s[::-1], v[::-1])[::-1]
+        return np.where(v > 0.0, np.minimum(v, np.minimum(ahead, behind)), 0.0)
+
+    def _reachable(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """inf over x >= 0 of max(f(s_i + x), x / T) for increasing s, where it is below the
+        sample's own limit f(s_i) and the override cap."""
+        n, T = len(s), self._T
+        masked = np.where(v > 0.0, v, np.inf)
+        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within a step
+        # at the sample's own limit (a longer step exceeds that limit whatever it meets).
+        step_mm = T * np.minimum(v, self._vcap_mm_s)
+        reach = np.searchsorted(s, s + step_mm, side="right")
+        count = np.maximum(np.minimum(reach, n - 1) - np.arange(n), 0)
+        first = np.cumsum(count) - count
+        i = np.repeat(np.arange(n), count)
+        j = i + np.arange(i.size) - np.repeat(first, count)
+        start_gap = s[j] - s[i]
+        end_gap = s[j + 1] - s[i]
+        value = np.maximum(masked[j + 1], end_gap / T)
+        h = s[j + 1] - s[j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = (v[j + 1] - v[j]) / h
+            x = (v[j] + slope * (s[i] - s[j])) / (1.0 / T - slope)  # f(s_i + x) = x / T
+        crossing = (
+            (v[j] > 0.0)
+            & (v[j + 1] > 0.0)
+            & (h > 0.0)
+            & (slope < 1.0 / T)
+            & (x >= start_gap)
+            & (x <= end_gap)
+        )
+        value = np.where(crossing, np.minimum(value, x / T), value)
+        out = np.full(n, np.inf)
+        paired = count > 0
+        if paired.any():
+            out[paired] = np.minimum.reduceat(value, first[paired])
+        return out

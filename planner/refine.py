@@ -1,0 +1,229 @@
+"""Refinement of a window until every segment keeps under the feed limit.
+
+Beyond the paper (motion-planning.md §9 row 6): each round checks every segment
+(:class:`planner.checker.Checker`) and repairs the failing ones: a cosine re-plan where the
+stretch is flagged F_v_plan (eqs. (5)-(13)), a cruise at the slower end's feed when that costs
+little, a new point at the worst excess, or a lower peak; should the rounds run out,
+the failing segments are flattened under the lowest limit they span. A window whose start is
+too fast for its staircase of points brakes in one segment instead (:func:`brake_first`).
+
+A new point is pinned on the limit (:class:`planner.window.Window`): a shade under it
+(``PIN_MARGIN``), with the limit's own slope as its acceleration (v dv_limit/ds, at most
+``PIN_ACCEL_FRACTION`` A; where the limit changes faster the point sits lower, where changing
+the feed at that rate meets the limit), so that the plan runs along the limit instead of
+stopping its acceleration at every point; the segments on either side are general jerk-limited
+motions (:mod:`planner.profiles.transition`). A point the scan cannot honour is lowered, then
+falls back to zero acceleration under the cap that keeps a zero-acceleration point below the
+limit around it (:meth:`planner.checker.Checker.end_cap`).
+
+Units: s in mm, feeds mm/s. Pure computation; not thread-safe (it edits the window).
+"""
+
+from __future__ import annotations
+
+import math
+
+from planner.checker import CHECK_SLACK, Checker
+from planner.envelope import MIN_FEED_MM_S
+from planner.profiles import Phase
+from planner.profiles.cosine import cosine_fits, cosine_max_high_speed, cosine_time_s
+from planner.profiles.scurve import settled_speed
+from planner.window import (
+    MIN_POINT_GAP_MM,
+    PlanLimits,
+    Window,
+    segment_plan,
+    segment_time_s,
+)
+
+#: Refinement rounds, and sensitive points, of one window before the failing segments are
+#: flattened under their lowest limit instead.
+MAX_REFINEMENTS, MAX_WINDOW_POINTS = 30, 300
+#: A point pinned on the feed limit sits this fraction below it (room for the segments on
+#: either side, which match the limit's value and slope there but not its curvature).
+PIN_MARGIN = 0.005
+#: A point is pinned only where the limit's slope asks at most this fraction of A.
+PIN_ACCEL_FRACTION = 0.9
+#: Time a failing segment may lose by cruising at its slower end's feed instead of being split,
+#: relative to its own (failing) time.
+HOLD_SLOWDOWN = 0.02
+
+
+def refine(w: Window, checker: Checker, v_start: float, lim: PlanLimits) -> list[float]:
+    """Refine the window until every segment keeps under the feed limit; returns the speeds.
+
+    Each round checks every segment (last to first, so that splits do not shift the rest) and
+    repairs the failing ones; should the rounds run out, every cosine segment becomes an S-curve
+    again (its jerk depends on both end speeds, which flattening may change) and the failing
+    segments are flattened to the lowest limit they span, which always holds: lowering the end
+    speeds of an S-curve segment never raises it anywhere.
+    """
+    verdicts: dict[tuple, tuple[float, float] | None] = {}
+    v = w.speeds(v_start, lim)
+    for flatten in (False, True):
+        if flatten:
+            w.cosine = [2 if kind == 1 else kind for kind in w.cosine]
+            for i in range(len(w.s)):
+                w.unpin(i)
+            v = w.speeds(v_start, lim)
+        for _ in range(MAX_REFINEMENTS):
+            if brake_first(w, v, checker):
+                v = w.speeds(v_start, lim)
+            failing = _failing(w, v, checker, lim, verdicts)
+            if not failing:
+                return v
+            changed = False
+            for k, bad in failing:
+                if flatten:
+                    changed |= _flatten(w, k, checker)
+                else:
+                    changed |= _repair(w, k, v, bad, checker, lim)
+            v = w.speeds(v_start, lim)
+            if not changed or (not flatten and len(w.s) > MAX_WINDOW_POINTS):
+                break
+    return v
+
+
+def _flatten(w: Window, k: int, checker: Checker) -> bool:
+    """Hold segment k, and its end points, under the lowest limit it spans; whether it changed."""
+    floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
+    changed = w.peak_cap[k] > floor
+    w.peak_cap[k] = min(w.peak_cap[k], floor)
+    for i in (k, k + 1):
+        if i > 0 and w.cap[i] > floor:
+            w.unpin(i)
+            w.cap[i] = floor
+            changed = True
+    return changed
+
+
+def brake_first(w: Window, v: list[float], checker: Checker) -> bool:
+    """Merge the first segments into one that brakes at once, if the start is too fast for them.
+
+    Every sensitive point is a point of zero acceleration, so a staircase of them, refined where
+    the feed limit keeps falling, can brake only slowly. When the start state (released by the
+    previous window, which did not see this stretch) is faster than such a staircase allows,
+    the points up to the first one the plan meets again are removed, and the one segment left
+    brakes from the start down to the lowest limit it spans and holds it (to the window's end
+    if the plan cannot even stop there).
+    """
+    over = [k for k in range(1, len(w.s)) if v[k] > w.cap[k] * (1.0 + 1e-9) + 1e-12]
+    if not over:
+        return False
+    m = min(over[-1] + 1, len(w.s) - 1)
+    if m <= 1:
+        return False
+    floor = max(checker.interior_min(w.s[0], w.s[m]), MIN_FEED_MM_S)
+    w.merge_first(m, floor)
+    return True
+
+
+def _failing(
+    w: Window, v: list[float], checker: Checker, lim: PlanLimits, verdicts: dict
+) -> list[tuple[int, tuple[float, float]]]:
+    """Failing segments, last first, with their worst excess (s, v_limit)."""
+    keys: dict[int, tuple] = {}
+    unchecked: dict[tuple, tuple[float, float, tuple[Phase, ...], float, float]] = {}
+    for k in range(len(w.s) - 1):
+        keys[k] = key = w.key(k, v)
+        if key not in verdicts and key not in unchecked:
+            phases, v_top = segment_plan(w, k, v, lim)
+            unchecked[key] = (w.s[k], v[k], phases, v_top, w.s[k + 1], w.acc[k])
+    verdicts.update(zip(unchecked, checker.worst_of(list(unchecked.values())), strict=True))
+    out = []
+    for k in range(len(w.s) - 2, -1, -1):
+        L = w.s[k + 1] - w.s[k]
+        if w.cosine[k] == 1 and not cosine_fits(v[k], v[k + 1], L, lim.A, lim.J):
+            out.append((k, (w.s[k], 0.0)))
+        elif verdicts[keys[k]] is not None:
+            out.append((k, verdicts[keys[k]]))
+    return out
+
+
+def _lower_for_cosine(w: Window, k: int, v: list[float], lim: PlanLimits) -> bool:
+    """Lower the faster end of a cosine segment so that a_act <= A and j_act <= J, eqs. (9)-(10)."""
+    L = w.s[k + 1] - w.s[k]
+    high = k if v[k] > v[k + 1] else k + 1
+    v_high = cosine_max_high_speed(min(v[k], v[k + 1]), L, lim.A, lim.J)
+    if high == 0 or min(v[k], v[k + 1]) + v_high <= 0.0:
+        w.cosine[k] = 2
+    else:
+        w.cap[high] = min(w.cap[high], v_high)
+    return True
+
+
+def _repair(
+    w: Window, k: int, v: list[float], bad: tuple[float, float], checker: Checker, lim
+) -> bool:
+    """One repair of segment k: cosine re-plan (F_v_plan), a new point, or a lower peak.
+
+    A new sensitive point goes to the worst excess, capped by the feed limit there as far as a
+    point of zero acceleration can meet it (:meth:`Checker.end_cap`); the two halves are
+    checked again, so refinement converges to a staircase that follows the limit where it keeps
+    changing (capping at the segment's lowest limit instead would hold whole stretches below
+    it). Before a split, a segment whose cruise at its slower end's feed costs at most
+    ``HOLD_SLOWDOWN`` of its time cruises there instead (towards a minimum of the limit the
+    splits would otherwise go on halving the gap). A segment that can no longer be split, or
+    whose ends and worst excess are all at its lowest limit (a flat stretch, where halves would
+    repeat the problem), is held under that limit by its peak.
+    """
+    s_bad, v_limit_bad = bad
+    L = w.s[k + 1] - w.s[k]
+    if w.cosine[k] == 1:
+        if not cosine_fits(v[k], v[k + 1], L, lim.A, lim.J):
+            return _lower_for_cosine(w, k, v, lim)
+        w.cosine[k] = 2
+        return True
+    failing_s = segment_time_s(w, k, v, lim)
+    if w.cosine[k] == 0 and w.fv_plan[k] and v[k] + v[k + 1] > 0.0:
+        # F_v_plan = 1: re-plan this stretch with eqs. (5)-(13), unless that is slower than a
+        # staircase of S-curves could be (near a corner both end speeds may be ~0); then the
+        # S-curve is repaired at once.
+        if cosine_time_s(v[k], v[k + 1], L) <= failing_s:
+            w.cosine[k] = 1
+            return True
+        w.cosine[k] = 2
+    floor = checker.interior_min(w.s[k], w.s[k + 1])
+    # Ends at the lowest limit of the segment and the excess where the limit is that low
+    # (a plateau): a point there would leave both halves the same problem.
+    plateau = max(v[k], v[k + 1], v_limit_bad) <= floor * (1.0 + CHECK_SLACK)
+    splittable = not (k == 0 and w.braking) and not plateau
+    slow = min(v[k], v[k + 1])
+    if splittable and w.peak_cap[k] > slow > 0.0:
+        # Cruising at the slower end's feed, changing speed next to the faster end, is the
+        # shape that stays under a limit falling towards the slower end; where it costs little
+        # time against the failing segment, it saves splitting again and again towards it.
+        peak_cap, w.peak_cap[k] = w.peak_cap[k], slow
+        if segment_time_s(w, k, v, lim) <= (1.0 + HOLD_SLOWDOWN) * failing_s:
+            return True
+        w.peak_cap[k] = peak_cap
+    if splittable and s_bad - w.s[k] > MIN_POINT_GAP_MM and w.s[k + 1] - s_bad > MIN_POINT_GAP_MM:
+        v_point = min(v_limit_bad, lim.vmax_mm_s)
+        flat_cap = checker.end_cap(s_bad, w.s[k], w.s[k + 1], v_point)
+        pin = v_point * (1.0 - PIN_MARGIN)
+        reach = PIN_ACCEL_FRACTION * lim.A
+        acc = pin * checker.slope(s_bad, pin * lim.T)
+        steep = abs(acc) > reach
+        if steep:
+            # A limit changing faster than the plan can: the point sits lower, where changing
+            # the feed at reach meets the limit (worth it only above the flat cap).
+            acc = math.copysign(reach, acc)
+            pin = checker.end_cap(s_bad, w.s[k], w.s[k + 1], pin, acc)
+        # Braking at a pinned point must be released before the feed reaches zero.
+        released = settled_speed(pin, min(acc, 0.0), lim.J) > PIN_MARGIN * pin
+        if v_limit_bad < lim.vmax_mm_s and released and not (steep and pin <= flat_cap):
+            w.insert(k, s_bad, pin, acc=acc, flat_cap=flat_cap)
+        else:
+            w.insert(k, s_bad, flat_cap)
+        return True
+    if max(v[k], v[k + 1]) <= floor * (1.0 + CHECK_SLACK):
+        if w.peak_cap[k] > floor * (1.0 + 1e-12):
+            w.peak_cap[k] = floor
+            return True
+        return False
+    for i in (k, k + 1):
+        if i > 0 and w.cap[i] > floor:
+            w.unpin(i)
+            w.cap[i] = floor
+            return True
+    return False

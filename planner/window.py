@@ -1,0 +1,326 @@
+"""One look-ahead window: its sensitive points, their speeds, and the segments between them.
+
+Source: section 2.2 of Wang, Zhao, Lu, Liu, China Mechanical Engineering 23(3), 2012, 299-304.
+- Curvature-rising module (:func:`sensitive_points`): walking forward, a curvature maximum (a
+  local minimum of the feed limit below vmax) is a velocity-sensitive point with its limited
+  feed; curvature-falling module: a stretch between two such points whose limit never reaches
+  vmax is a region of frequent speed change, flag F_v_plan = 1.
+- Between sensitive points, jerk-limited S-curve segments (:mod:`planner.profiles.scurve`) or,
+  where flagged and needed, the cosine profile of eqs. (5)-(13); zero acceleration at the points.
+Beyond the paper: points the refinement pins on the limit carry the limit's slope as their
+acceleration, and the segments touching them are general jerk-limited motions between
+(v0, a0) and (v1, a1) (:mod:`planner.profiles.transition`); the paper's sensitive points keep
+zero acceleration.
+Beyond the paper (motion-planning.md §1, §9 row 6): a bidirectional scan with jerk-feasible
+speed changes (:func:`passes`: backward, the highest speed from which each next point can still
+be met; forward, the highest speed reachable).
+
+Units: s in mm, feeds mm/s, A mm/s², J mm/s³, T s. Pure computation; one window per plan of a
+stretch, not thread-safe.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner.profiles import Phase
+from planner.profiles.cosine import cosine_time_s
+from planner.profiles.scurve import (
+    braking_distance_mm,
+    cruise_speed,
+    fitting_lower_speed,
+    max_ramp_speed,
+    min_ramp_speed,
+    ramp_distance_mm,
+    segment_phases,
+)
+from planner.profiles.transition import (
+    highest_end_speed,
+    highest_start_speed,
+    segment_phases_between,
+    transition_distance_mm,
+)
+
+#: Relative excess of a ramp over its distance still counted as fitting (round-off).
+RAMP_FIT_RTOL = 1e-9
+#: Times the scan lowers a pinned point it cannot honour before unpinning it.
+PIN_RETRIES = 3
+#: Points closer than this are not inserted, mm.
+MIN_POINT_GAP_MM = 1e-7
+
+
+@dataclass(frozen=True)
+class PlanLimits:
+    """The limits one plan uses: feed cap (vmax), tangential A and J, period T."""
+
+    vmax_mm_s: float
+    A: float
+    J: float
+    T: float
+
+
+@dataclass(frozen=True)
+class SegmentPlan:
+    """A released stretch of motion: phases from (s, v, a) at time t, ending at s_end, v_end
+    and a_end."""
+
+    phases: tuple[Phase, ...]
+    s_end_mm: float
+    v_end_mm_s: float
+    a_end_mm_s2: float = 0.0
+
+
+class Window:
+    """Sensitive points of one look-ahead window and the refinement state of its segments.
+
+    A point has zero acceleration (the paper's sensitive points, the start, the window end,
+    and the points refinement adds where the limit cannot be followed), or is *pinned* on the
+    feed limit: its speed is its cap and its acceleration the limit's own slope there, so that
+    the plan runs along the limit instead of stopping its acceleration at every point. A pinned
+    point the scan cannot honour falls back to zero acceleration under ``flat_cap``.
+    """
+
+    def __init__(self, s: list[float], cap: list[float], fv_plan: list[bool]) -> None:
+        self.s = s
+        self.cap = cap
+        self.fv_plan = fv_plan  # per segment: region of frequent speed change (F_v_plan = 1)
+        self.acc = [0.0] * len(s)
+        self.pinned = [False] * len(s)
+        self.flat_cap = list(cap)  # cap of a point at zero acceleration
+        self.peak_cap = [math.inf] * (len(s) - 1)
+        self.cosine = [0] * (len(s) - 1)  # 0: S-curve, 1: cosine, 2: cosine rejected
+        self.braking = False  # the first segment brakes from the start state (brake_first)
+        # Planned phases and top feed of each segment shape met so far (see key).
+        self.plans: dict[tuple, tuple[tuple[Phase, ...], float] | None] = {}
+
+    def key(self, k: int, v: list[float]) -> tuple:
+        """What segment k's plan depends on: its ends, end states, peak cap and profile kind."""
+        return (
+            self.s[k],
+            self.s[k + 1],
+            v[k],
+            v[k + 1],
+            self.acc[k],
+            self.acc[k + 1],
+            self.peak_cap[k],
+            self.cosine[k],
+        )
+
+    def insert(
+        self,
+        k: int,
+        s_new: float,
+        cap_new: float,
+        *,
+        acc: float = 0.0,
+        flat_cap: float | None = None,
+    ) -> None:
+        """Split segment k at s_new with a new point (pinned when ``flat_cap`` is given)."""
+        self.s.insert(k + 1, s_new)
+        self.cap.insert(k + 1, cap_new)
+        self.acc.insert(k + 1, acc if flat_cap is not None else 0.0)
+        self.pinned.insert(k + 1, flat_cap is not None)
+        self.flat_cap.insert(k + 1, cap_new if flat_cap is None else flat_cap)
+        self.fv_plan.insert(k + 1, self.fv_plan[k])
+        self.peak_cap[k : k + 1] = [math.inf, math.inf]
+        self.cosine[k : k + 1] = [2, 2] if flat_cap is not None else [0, 0]
+
+    def unpin(self, k: int) -> None:
+        """Point k back to zero acceleration, under its flat cap."""
+        self.pinned[k] = False
+        self.acc[k] = 0.0
+        self.cap[k] = min(self.cap[k], self.flat_cap[k])
+
+    def _shapeless(
+        self, v: list[float], acc: list[float], pinned: list[bool], lim: PlanLimits
+    ) -> int | None:
+        """The pinned end of the first segment with no motion of the shapes tried, or None."""
+        for k in range(len(self.s) - 1):
+            if (acc[k] != 0.0 or acc[k + 1] != 0.0) and _shape(
+                self, self.s, k, v, acc, lim
+            ) is None:
+                return k + 1 if pinned[k + 1] else k
+        return None
+
+    def merge_first(self, m: int, peak_cap: float) -> None:
+        """Remove the points between the start and point m: one segment, held under peak_cap."""
+        for column in (self.s, self.cap, self.acc, self.pinned, self.flat_cap, self.fv_plan):
+            del column[1:m]
+        del self.peak_cap[1:m], self.cosine[1:m]
+        self.peak_cap[0] = peak_cap
+        self.cosine[0] = 2
+        self.braking = True
+
+    def speeds(
+        self, v_start: float, lim: PlanLimits, caps: list[float] | None = None
+    ) -> list[float]:
+        """Speeds of the points by :func:`passes`, lowering the pinned points it cannot honour
+        (halfway to their flat cap, ``PIN_RETRIES`` times, then unpinned); with other ``caps``
+        (a look at the plan without the stop at the window end) the window is left as it is."""
+        keep = caps is not None
+        caps = list(self.cap if caps is None else caps)
+        acc, pinned = list(self.acc), list(self.pinned)
+        tries = [0] * len(self.s)
+        while True:
+            v, bad = passes(self.s, caps, v_start, lim, acc, pinned)
+            if bad is None:
+                bad = self._shapeless(v, acc, pinned, lim)
+            if bad is None:
+                return v
+            if tries[bad] < PIN_RETRIES and caps[bad] > self.flat_cap[bad]:
+                # Lower, along the limit's slope: the acceleration scales with the feed.
+                lower = 0.5 * (caps[bad] + self.flat_cap[bad])
+                acc[bad] *= lower / caps[bad]
+                caps[bad] = lower
+                tries[bad] += 1
+            else:
+                pinned[bad], acc[bad] = False, 0.0
+                caps[bad] = min(caps[bad], self.flat_cap[bad])
+            if not keep:
+                self.cap[bad], self.acc[bad], self.pinned[bad] = caps[bad], acc[bad], pinned[bad]
+
+
+def passes(
+    s: list[float],
+    cap: list[float],
+    v_start: float,
+    lim: PlanLimits,
+    acc: list[float] | None = None,
+    pinned: list[bool] | None = None,
+) -> tuple[list[float], int | None] | list[float]:
+    """Bidirectional scan: backward (can still meet the next point), then forward (reachable).
+
+    Without ``acc`` every point has zero acceleration and the speeds are returned. With it
+    (and ``pinned``), a pinned point keeps its cap and acceleration where it can be met and
+    left; returns the speeds and the first pinned point that cannot (or None).
+    """
+    plain = acc is None
+    n = len(s)
+    acc = acc if acc is not None else [0.0] * n
+    pinned = pinned if pinned is not None else [False] * n
+    A, J = lim.A, lim.J
+    back = list(cap)
+    for k in range(n - 2, 0, -1):
+        L = s[k + 1] - s[k]
+        if pinned[k]:
+            if transition_distance_mm(cap[k], acc[k], back[k + 1], acc[k + 1], A, J) > L * (
+                1.0 + RAMP_FIT_RTOL
+            ):
+                return back, k
+            continue
+        if acc[k + 1] == 0.0:
+            back[k] = min(cap[k], max_ramp_speed(back[k + 1], L, A, J))
+        else:
+            start = highest_start_speed(back[k + 1], acc[k + 1], L, cap[k], A, J)
+            if start is None:
+                return back, k + 1
+            back[k] = start
+    v = [v_start] + [0.0] * (n - 1)
+    for k in range(1, n):
+        L = s[k] - s[k - 1]
+        if acc[k - 1] != 0.0 or pinned[k]:
+            if pinned[k]:
+                v[k] = cap[k]
+            else:
+                end = highest_end_speed(v[k - 1], acc[k - 1], L, back[k], A, J)
+                if end is None:
+                    return v, k - 1
+                v[k] = end
+            continue
+        v[k] = min(back[k], max_ramp_speed(v[k - 1], L, A, J))
+        fits = L * (1.0 + RAMP_FIT_RTOL)
+        if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], A, J) > fits:
+            if braking_distance_mm(v[k - 1], A, J) <= fits:
+                # Stopping fits where slowing to v[k] does not: slow down further instead.
+                v[k] = fitting_lower_speed(v[k - 1], v[k], L, A, J)
+            else:
+                # Only a start state faster than the constraints allow gets here: brake hardest.
+                v[k] = max(v[k], min_ramp_speed(v[k - 1], L, A, J))
+    return v if plain else (v, None)
+
+
+def _shape(
+    w: Window, s: list[float], k: int, v: list[float], acc: list[float], lim: PlanLimits
+) -> tuple[tuple[Phase, ...], float] | None:
+    """Phases and top feed of a segment with an end of non-zero acceleration (cached)."""
+    key = (s[k], s[k + 1], v[k], v[k + 1], acc[k], acc[k + 1], w.peak_cap[k], 2)
+    if key not in w.plans:
+        v_cap = min(lim.vmax_mm_s, w.peak_cap[k])
+        phases = segment_phases_between(
+            v[k], acc[k], v[k + 1], acc[k + 1], s[k + 1] - s[k], v_cap, lim.A, lim.J
+        )
+        low, top = (-1.0, math.inf) if phases is None else _speed_range(v[k], acc[k], phases)
+        # A transition may overshoot its ends: above the feed cap, or backwards, it is no
+        # motion of this plan.
+        fits = low >= 0.0 and top <= max(v_cap, v[k], v[k + 1]) * (1.0 + RAMP_FIT_RTOL)
+        w.plans[key] = (tuple(phases), top) if fits else None
+    return w.plans[key]
+
+
+def _speed_range(v: float, a: float, phases: list[Phase]) -> tuple[float, float]:
+    """Lowest and highest feed of constant-jerk phases from (v, a): at their ends or where the
+    acceleration crosses zero."""
+    low = high = v
+    for phase in phases:
+        tau, j = phase.duration_s, phase.jerk_mm_s3
+        if j != 0.0 and 0.0 < -a / j < tau:  # a crosses zero inside: a speed extremum
+            t0 = -a / j
+            extremum = v + a * t0 + j * t0 * t0 / 2.0
+            low, high = min(low, extremum), max(high, extremum)
+        v += a * tau + j * tau * tau / 2.0
+        a += j * tau
+        low, high = min(low, v), max(high, v)
+    return low, high
+
+
+def segment_plan(
+    w: Window, k: int, v: list[float], lim: PlanLimits
+) -> tuple[tuple[Phase, ...], float] | None:
+    """Phases of segment k and its highest planned feed (computed once per window and shape);
+    None where an end is pinned and no motion between the ends stays under the peak cap (the
+    scan unpins such ends, so only a trial of a lower peak cap meets it)."""
+    if w.acc[k] != 0.0 or w.acc[k + 1] != 0.0:
+        return _shape(w, w.s, k, v, w.acc, lim)
+    key = w.key(k, v)
+    if key not in w.plans:
+        v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
+        if w.cosine[k] == 1:
+            t_a = cosine_time_s(v0, v1, L)  # eq. (12)
+            w.plans[key] = (Phase(t_a, cosine_dv_mm_s=v1 - v0),), max(v0, v1)
+        else:
+            vp = cruise_speed(v0, v1, L, min(lim.vmax_mm_s, w.peak_cap[k]), lim.A, lim.J)
+            w.plans[key] = tuple(segment_phases(v0, vp, v1, L, lim.A, lim.J)), max(v0, vp, v1)
+    return w.plans[key]
+
+
+def segment_time_s(w: Window, k: int, v: list[float], lim: PlanLimits) -> float:
+    """Duration of segment k as planned (inf where it has no motion, see segment_plan)."""
+    plan = segment_plan(w, k, v, lim)
+    return math.inf if plan is None else sum(phase.duration_s for phase in plan[0])
+
+
+def sensitive_points(
+    s_env: np.ndarray, v_env: np.ndarray, s0: float, s_end: float, vcap: float
+) -> tuple[list[float], list[float], list[bool]]:
+    """Curvature-rising module: local minima of the feed limit below vcap in (s0, s_end).
+
+    Returns the points' s and caps, and per stretch between them the curvature-falling flag
+    F_v_plan (the limit stays below vcap between two maxima of curvature).
+    """
+    inside = (s_env > s0 + MIN_POINT_GAP_MM) & (s_env < s_end - MIN_POINT_GAP_MM)
+    v = v_env
+    prev = np.concatenate([[np.inf], v[:-1]])
+    nxt = np.concatenate([v[1:], [np.inf]])
+    is_min = (v <= prev) & (v <= nxt) & ~((v == prev) & (v == nxt)) & (v < vcap) & inside
+    idx = np.flatnonzero(is_min)
+    s = [s0, *s_env[idx].tolist()]
+    cap = [0.0, *np.minimum(v[idx], vcap).tolist()]
+    bounds = np.searchsorted(s_env, s)
+    fv = []
+    for a, b in itertools.pairwise(bounds):
+        fv.append(bool(b - a > 1 and v[a:b].max() < vcap))
+    return s, cap, fv
