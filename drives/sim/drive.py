@@ -129,6 +129,8 @@ _WINDOW_OFF: Final[int] = 0xFFFF_FFFF  # 0x6065 value that switches following co
 
 #: Model of a drive created without one.
 DEFAULT_MODEL: Final = DriveModel()
+#: Wire time of one 6-byte frame at 1 Mbit/s (115 bits with worst-case stuffing), s.
+_FRAME_S: Final[float] = 115e-6
 #: A drive that behaves as the full CiA 402 drive.
 NO_QUIRKS: Final = DriveQuirks()
 
@@ -706,7 +708,10 @@ class SimulatedDrive:
             entry.codec.pack_into(buffer, entry.offset, self._image[entry.index])
         return bytes(buffer)
 
-    def _send_sync_tpdos(self) -> None:
+    def _send_sync_tpdos(self, sync_s: float) -> None:
+        """The synchronous TPDOs answering the SYNC received with timestamp ``sync_s``: on the
+        wire right after it, one frame time apart, however late this thread runs (a real
+        drive answers within the period; a simulated one shares its host with the master)."""
         frames = []
         for n, pdo in self._tpdos.items():
             trans_type = pdo.trans_type
@@ -724,8 +729,8 @@ class SimulatedDrive:
             # Sent ``late`` SYNCs after the one they answer, with the data of that one.
             self._late_tpdos.append(frames)
             frames = self._late_tpdos.popleft() if len(self._late_tpdos) > late else []
-        for cob_id, data in frames:
-            self._send(cob_id, data)
+        for number, (cob_id, data) in enumerate(frames, start=1):
+            self._send(cob_id, data, sync_s + number * _FRAME_S)
 
     def _send_event_tpdos(self) -> None:
         if self._nmt is not NmtState.OPERATIONAL:
@@ -781,7 +786,7 @@ class SimulatedDrive:
                         self._apply_mode()
                 self._step(self._period_s(), now)
                 if operational:
-                    self._send_sync_tpdos()
+                    self._send_sync_tpdos(timestamp)
                     self._send_event_tpdos()
         except Exception:
             logger.exception("node %d: SYNC step", self.node_id)
@@ -964,9 +969,18 @@ class SimulatedDrive:
             return
         self._send(cob_id & objects.COB_ID_MASK, emcy.pack_emcy(code, register))
 
-    def _send(self, can_id: int, data: bytes) -> None:
+    def _send(self, can_id: int, data: bytes, wire_s: float | None = None) -> None:
+        """Send a frame stamped with when it is on the wire: ``wire_s``, or now (the stamp
+        reaches the other buses of a ``virtual`` channel, see :func:`start_simulated_drives`)."""
         if self._answering and self._powered:
-            self.network.send_message(can_id, data)
+            message = can.Message(
+                arbitration_id=can_id,
+                data=data,
+                is_extended_id=False,
+                timestamp=time.time() if wire_s is None else wire_s,
+            )
+            with self.network.send_lock:
+                self.network.bus.send(message)
 
     def _send_sdo_response(self, response: bytes) -> None:
         """The SDO server's answer: at once, or after the quirks' SDO delay (the watchdog
@@ -1227,7 +1241,10 @@ def start_simulated_drives(
     """
     if len(set(node_ids)) != len(node_ids):
         raise ValueError(f"simulated drives: node_ids {list(node_ids)} repeat a node-ID")
-    network = canopen.Network(open_bus(interface, channel, bitrate))
+    # On a virtual channel the drives' frames keep the stamps they are sent with (when they are
+    # on the wire); SocketCAN and other buses stamp them on reception anyway.
+    options = {"preserve_timestamps": True} if interface == "virtual" else {}
+    network = canopen.Network(open_bus(interface, channel, bitrate, **options))
     network.NOTIFIER_CYCLE = SIM_NOTIFIER_CYCLE_S
     network.NOTIFIER_SHUTDOWN_TIMEOUT = SIM_NOTIFIER_SHUTDOWN_TIMEOUT_S
     network.connect()

@@ -721,6 +721,8 @@ def test_guarding_only_answers_node_guarding_with_a_toggle_and_guards_its_life()
 
 def test_a_drive_with_heartbeat_on_does_not_answer_guarding(bench):
     bench.node.sdo[objects.PRODUCER_HEARTBEAT].raw = 1000
+    # Its first heartbeat goes out at once; the next one is a second away.
+    assert _wait_for(lambda: len(bench.frames_with_id(0x700 + NODE)) >= 2)  # boot-up, heartbeat
     bench.frames.clear()
     bench.master.bus.send(
         can.Message(arbitration_id=0x700 + NODE, is_remote_frame=True, dlc=1, is_extended_id=False)
