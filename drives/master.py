@@ -461,17 +461,18 @@ class Cia402Master:
         them so: the SYNC then leaves as soon after the wake-up as a single frame would.
         """
         slot = (self._sync.sent + 1) % self._history
-        frames = self._period_frames
-        frames.clear()
         for axis in self._sending:
             axis.sent_counts[slot] = axis.prepared_counts
-            frames.append(axis.rpdo_message)
-        frames.append(self._sync.next_message())
         send_frames = getattr(self.bus, "send_frames", None)
         if send_frames is None:
-            for frame in frames:
-                self._send(frame)
+            for axis in self._sending:
+                self._send(axis.rpdo_message)
+            self._sync.transmit()  # dated just before it goes out, after the RPDOs
             return
+        frames = self._period_frames
+        frames.clear()
+        frames.extend(axis.rpdo_message for axis in self._sending)
+        frames.append(self._sync.next_message())
         try:
             send_frames(frames)
         except can.CanError as exc:
