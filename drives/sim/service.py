@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import threading
 
@@ -88,6 +89,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="send each synchronous TPDO this many SYNCs after the one it answers",
     )
     parser.add_argument(
+        "--priority",
+        type=int,
+        default=0,
+        help="SCHED_FIFO priority 1..99 of the drive's threads, as hardware that never waits "
+        "for the host (default 0: the normal scheduler)",
+    )
+    parser.add_argument(
         "--log-level",
         default="INFO",
         choices=["DEBUG", "INFO", "WARNING", "ERROR"],
@@ -143,6 +151,12 @@ def run(args: argparse.Namespace) -> int:
         level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if args.priority:
+        # Set before the bus and the drive start their threads: they inherit it.
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.priority))
+        except OSError as exc:
+            logger.warning("SCHED_FIFO %d refused (%s): normal scheduling", args.priority, exc)
     model = DriveModel(
         max_velocity_counts_s=args.max_velocity_counts_s,
         max_accel_counts_s2=args.max_accel_counts_s2,

@@ -24,8 +24,6 @@ there:
 - the cycle may miss up to 100 consecutive periods (2 s) before it stops the machine, instead of
   3: the emulated VM was seen to stall the process for half a second; the drives' SYNC-loss
   limit is 100 periods instead of 10 for the same reason;
-- the runtime keeps the normal scheduler: a SCHED_FIFO process would starve the drive processes,
-  which on a real bus run on hardware of their own;
 - the test polls the machine's status every 100 ms instead of 10 ms: each read also costs the
   runtime's Modbus thread CPU time that the cycle and the drives need.
 
@@ -89,6 +87,8 @@ STATUS_POLL_S = 0.1 if IN_VM else 0.01
 #: full feed each period late is 2 mm of following error.
 VM_OVERRIDE_PERCENT = 25.0
 COUNTS_PER_MM = 1000
+#: SCHED_FIFO priority of the drive processes: below the cycle's (80), above everything else.
+DRIVE_PRIORITY = 70
 SYNC, RPDO1, TPDO1 = 0x80, 0x200, 0x180
 S = MachineState
 #: Controlwords a CSP axis legitimately sends (CiA 402: disable voltage, quick stop, shutdown,
@@ -112,10 +112,6 @@ class VcanMachine:
         document["modbus"]["port"] = self.port
         document["cycle"]["period_ms"] = PERIOD_MS
         document["cycle"]["overrun_limit"] = 100 if IN_VM else 3
-        if IN_VM:
-            # Two virtual CPUs stand for the IPC and three drives: a SCHED_FIFO runtime would
-            # starve the drive processes, which on a real bus run on hardware of their own.
-            document["cycle"]["realtime"].update(priority=0, spin_us=0)
         if IN_VM:
             # At 20 ms a 1 µm chord error would limit the arc's feed to 35 mm/s.
             document["planner"]["chord_error_mm"] = 0.01
@@ -172,6 +168,9 @@ class VcanMachine:
                 # SYNC loss after that many periods: the runtime's overrun limit comes first.
                 "--sync-timeout-factor",
                 "100" if IN_VM else "10",
+                # Real time just below the cycle, as hardware that never waits for the host.
+                "--priority",
+                str(DRIVE_PRIORITY),
                 "--log-level",
                 "WARNING",
             ],
