@@ -8,9 +8,12 @@ stops the machine on the path and is started again; a killed cycle ends the runt
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import signal
+import socket
+import threading
 import time
 import uuid
 from dataclasses import replace
@@ -22,11 +25,12 @@ from machine_harness import PAPER, sim_config
 from setpoint_checks import differences, realised_feed
 
 from drives.sim.quirks import DriveQuirks
-from runtime.commands import CommandCode
+from runtime.commands import CommandCode, CommandOrigin
 from runtime.config import MachineConfig
 from runtime.curves import load_curve_file
+from runtime.hmi.client import HmiClient
 from runtime.simulation import simulation_main
-from runtime.status import FaultKind, MachineState, MotionPhase
+from runtime.status import FaultKind, MachineState, MotionPhase, WatchdogState
 from runtime.supervisor import CycleDied, Runtime
 
 T = 0.004
@@ -204,3 +208,78 @@ def test_a_second_start_after_a_clean_shutdown_finds_every_drive_healthy() -> No
     finally:
         drives.terminate()
         drives.join(10)
+
+
+def test_killed_hmi_lets_the_watchdog_hold_and_comes_back() -> None:
+    config = local_config()
+    watchdog = replace(config.modbus.watchdog, timeout_ms=300, action="hold")
+    modbus = replace(config.modbus, enabled=True, port=free_port(), watchdog=watchdog)
+    with Runtime(replace(config, modbus=modbus), log_level="WARNING") as runtime:
+        with Heartbeat(connect_when_listening(modbus.port)):
+            load_enable(runtime)
+            runtime.command(CommandCode.START)
+            runtime.wait_for(lambda s: s.phase is MotionPhase.PROGRAM, 10.0)
+            hmi = runtime.process("hmi")
+            os.kill(hmi.pid, signal.SIGKILL)
+        # Nobody changes the HMI heartbeat any more: the cycle's watchdog holds on the path.
+        status = runtime.wait_for(lambda s: s.state is not MachineState.MOVING, 3.0)
+        assert status.state is MachineState.HOLDING and status.watchdog is WatchdogState.TRIPPED
+        assert status.last_command.origin is CommandOrigin.WATCHDOG
+        runtime.wait_for(
+            lambda s: runtime.process("hmi").pid != hmi.pid and runtime.process("hmi").is_alive(),
+            10.0,
+        )
+        # The new HMI server answers; its heartbeat re-arms the watchdog and resume goes on.
+        with Heartbeat(connect_when_listening(modbus.port)):
+            client = connect_when_listening(modbus.port)
+            try:
+                assert client.core_status().snapshot.state is MachineState.HOLDING
+                client.command(CommandCode.RESUME)
+                run_to_standby(runtime)
+            finally:
+                client.close()
+
+
+class Heartbeat:
+    """An HMI client (its own connection: the client is not thread-safe) changing the HMI
+    heartbeat every 50 ms from a thread, until the block ends (then the connection closes)."""
+
+    def __init__(self, client: HmiClient) -> None:
+        self.client = client
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, daemon=True)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(0.05):
+            with contextlib.suppress(Exception):  # the server may be killed meanwhile
+                self.client.heartbeat()
+
+    def __enter__(self) -> HmiClient:
+        self.client.heartbeat()
+        self._thread.start()
+        return self.client
+
+    def __exit__(self, *exc_info: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.client.close()
+
+
+def connect_when_listening(port: int, timeout_s: float = 10.0) -> HmiClient:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        client = HmiClient(port=port, timeout_s=2.0)
+        try:
+            client.connect()
+            return client
+        except Exception:
+            client.close()
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
