@@ -111,7 +111,9 @@ class AxisStatus:
     drive_state: int
     """CiA 402 state (drives.cia402.State value), -1 when the statusword matched none."""
     following_error_mm: float
-    """Actual position minus the target given for that instant (see the register map)."""
+    """Actual position minus the target the drive was given for that instant (its own 0x60F4
+    when mapped); for a drive not enabled (faulted, stopped), actual minus the machine's
+    setpoint: how far it stands off the path."""
     peak_following_error_mm: float = 0.0
     """Largest |following error| since the last START (or statistics reset)."""
     statusword: int = 0

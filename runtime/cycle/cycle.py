@@ -329,6 +329,10 @@ class Cycle:
         in_position = not machine.moving and machine.state is not MachineState.DISABLED
         for i, (fb, target) in enumerate(zip(feedback, machine.targets, strict=True)):
             error = fb.following_error_mm
+            if fb.state is not DriveState.OPERATION_ENABLED:
+                # The master gives a drive that is not enabled its own position as target; how
+                # far it stands off the machine's setpoint (the path) is what matters then.
+                error = fb.position_mm - target
             if not abs(error) <= self._windows_mm[i]:  # NaN: not known yet, not in position
                 in_position = False
             if abs(error) > self._peak_errors_mm[i]:

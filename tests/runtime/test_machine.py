@@ -405,3 +405,17 @@ def test_shutdown_stops_on_the_path_disables_and_leaves_the_bus(h: Harness) -> N
     assert h.status.state is MachineState.DISABLED
     steps = np.linalg.norm(np.diff(h.target_array(), axis=0), axis=1)
     assert steps.max() <= VMAX_STEP_MM
+
+
+def test_a_faulted_axis_shows_how_far_it_stands_off_the_path(tmp_path: Path) -> None:
+    h = Harness(tmp_path, config=_axis_fault_config("stop"))
+    reach_moving(h)
+    h.drives.inject_fault(0)
+    h.until(lambda s: s.feed_mm_s == 0.0, 100)
+    status = h.status
+    x = status.axes[0]
+    assert x.drive_state == State.FAULT
+    # The others braked on along the path while X stood: its error is the distance to it.
+    assert x.following_error_mm == pytest.approx(x.actual_mm - x.commanded_mm)
+    assert abs(x.following_error_mm) > 0.5
+    assert status.axes[1].following_error_mm == pytest.approx(0.0, abs=1e-9)
