@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -37,10 +38,28 @@ def connect_hmi(
 
     :raises AssertionError: with the machine's log, if the process exits first.
     """
-    deadline = time.monotonic() + timeout_s
-    while True:
+
+    def check() -> None:
         if process.poll() is not None:
             raise AssertionError(f"softmotion run exited:\n{log.read_text()}")
+
+    return connect_when_listening(
+        port, timeout_s=timeout_s, client_timeout_s=client_timeout_s, check=check
+    )
+
+
+def connect_when_listening(
+    port: int,
+    *,
+    timeout_s: float = 10.0,
+    client_timeout_s: float = 2.0,
+    check: Callable[[], None] = lambda: None,
+) -> HmiClient:
+    """An HMI client connected once the server listens and the machine has a status;
+    ``check`` is called before each try (it raises to give up)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        check()
         client = HmiClient(port=port, timeout_s=client_timeout_s)
         try:
             client.connect()

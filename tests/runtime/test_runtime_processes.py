@@ -12,7 +12,6 @@ import contextlib
 import multiprocessing
 import os
 import signal
-import socket
 import threading
 import time
 import uuid
@@ -22,6 +21,7 @@ import numpy as np
 import pytest
 from bus_recorder import BusRecorder
 from machine_harness import PAPER, sim_config
+from machine_process import connect_when_listening, free_port
 from setpoint_checks import differences, realised_feed
 
 from drives.sim.quirks import DriveQuirks
@@ -263,23 +263,3 @@ class Heartbeat:
         self._stop.set()
         self._thread.join()
         self.client.close()
-
-
-def connect_when_listening(port: int, timeout_s: float = 10.0) -> HmiClient:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        client = HmiClient(port=port, timeout_s=2.0)
-        try:
-            client.connect()
-            return client
-        except Exception:
-            client.close()
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.1)
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
