@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum, IntEnum
 
+from drives.boot import BootPhase
 from drives.cia402 import State as DriveState
 from runtime.commands import (
     OVERRIDE_MAX_PERCENT,
@@ -475,6 +476,13 @@ FIELDS: tuple[Field, ...] = (
     ),
     _axis("AXIS_STATUSWORD", 9, Kind.U16, "raw CiA 402 statusword 0x6041 of the last feedback"),
     _axis("AXIS_NODE_ID", 10, Kind.U16, "CANopen node id of the drive"),
+    _axis(
+        "AXIS_BOOT_PHASE",
+        11,
+        Kind.U16,
+        "where the master's boot of the drive stands (READY: configured and started)",
+        values=BootPhase,
+    ),
     _axis("AXIS_NAME", 12, Kind.ASCII, "axis name (4 characters)", registers=2),
     # Cycle statistics.
     Field(
@@ -1110,6 +1118,7 @@ _AXIS = (
     "AXIS_DRIVE_STATE",
     "AXIS_STATUSWORD",
     "AXIS_NODE_ID",
+    "AXIS_BOOT_PHASE",
 )
 _AXIS_ROWS = tuple(_Row(_AXIS, i) for i in range(MAX_AXES))
 
@@ -1161,6 +1170,7 @@ def _put_machine(image: list[int], snapshot: StatusSnapshot, staging: StagingSta
                 drive_state,
                 axis.statusword,
                 axis.node_id,
+                axis.boot_phase,
             ),
         )
 
@@ -1244,6 +1254,7 @@ def decode_status(image: Sequence[int]) -> HmiStatus:
             following_error_mm=float(g("AXIS_FOLLOWING_ERROR", i)),
             peak_following_error_mm=float(g("AXIS_PEAK_FOLLOWING_ERROR", i)),
             statusword=int(g("AXIS_STATUSWORD", i)),
+            boot_phase=int(g("AXIS_BOOT_PHASE", i)),
         )
         for i in range(min(int(g("AXIS_COUNT")), MAX_AXES))
     )

@@ -56,6 +56,7 @@ from canlisten import CanListener, RecordedFrame
 from conftest import DIAGNOSTIC_LOGS, VCAN_CHANNEL, running_in_vcan_vm
 from machine_process import connect_hmi
 
+from drives.boot import BootPhase
 from planner.nurbs import NurbsCurve
 from runtime.commands import CommandCode, CommandResult
 from runtime.curves import load_curve_file
@@ -172,7 +173,7 @@ class VcanMachine:
                 "--priority",
                 str(DRIVE_PRIORITY),
                 "--log-level",
-                "WARNING",
+                "INFO",
             ],
             stdout=log,
             stderr=subprocess.STDOUT,
@@ -243,6 +244,10 @@ def assert_axes_at_the_end(status: StatusSnapshot) -> None:
 
 
 def test_boot_configures_every_drive_by_sdo(machine: VcanMachine, listener: CanListener) -> None:
+    # The runtime serves while the cycle boots the drives: wait until every one is ready.
+    machine.wait_for(
+        lambda s: all(a.boot_phase == BootPhase.READY for a in s.snapshot.axes), 30, "boot"
+    )
     frames = listener.frames()
     for node in NODES:
         # SDO requests to the node and its answers: configured and read back over the bus.
