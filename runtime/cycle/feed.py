@@ -178,6 +178,7 @@ class SetpointFeed:
         self._first_offer_taken = False
         self._override_percent = override_percent
         self._switch = None
+        self._hold_row = -1
         self._underrun_reported = False
         self._post(
             PlanRequestKind.FOLLOW,

@@ -169,9 +169,6 @@ class VcanMachine:
                 # SYNC loss after that many periods: the runtime's overrun limit comes first.
                 "--sync-timeout-factor",
                 "100" if IN_VM else "10",
-                # Real time just below the cycle, as hardware that never waits for the host.
-                "--priority",
-                str(DRIVE_PRIORITY),
                 "--log-level",
                 "INFO",
             ],
