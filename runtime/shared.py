@@ -156,6 +156,11 @@ class SeqlockCell:
         """Whether the writer has published at least once."""
         return int(self._seq[0]) != 0
 
+    @property
+    def version(self) -> int:
+        """Changes with every publish (one read: a poller skips the copy while it stands)."""
+        return int(self._seq[0])
+
     def read_bytes(self) -> bytes | None:
         """A consistent copy of the record; None if never written or caught mid-write."""
         for _ in range(READ_ATTEMPTS):
@@ -449,6 +454,11 @@ class PlannerRequests:
         for segment in segments:
             values.extend(_pack_segment(segment))
         self._cell.write(*values)
+
+    @property
+    def version(self) -> int:
+        """Changes with every posted request (see :attr:`SeqlockCell.version`)."""
+        return self._cell.version
 
     def latest(self) -> PlanRequest | None:
         """The latest request; None if none yet (or caught mid-write)."""

@@ -110,6 +110,7 @@ class PlannerService:
         self._paths: OrderedDict[int, Path] = OrderedDict()
         self._job: _Job | None = None
         self._seen = 0
+        self._request_version = -1
         # A restarted planner goes on numbering offers after its predecessor's: the cycle
         # ignores an offer whose number it has answered already.
         previous = shared.planner_reports.latest() or PlannerReport()
@@ -122,12 +123,17 @@ class PlannerService:
     def poll(self) -> bool:
         """One unit of work; False when there was nothing to do (the caller may sleep briefly)."""
         self._shared.planner_reports.heartbeat.value += 1
-        request = self._shared.planner_requests.latest()
-        if request is not None and request.seq != self._seen:
-            self._seen = request.seq
-            self._handle(request)
-            self._publish()
-            return True
+        requests = self._shared.planner_requests
+        version = requests.version  # read before the request: a newer one shows next poll
+        if version != self._request_version:
+            request = requests.latest()
+            if request is not None:  # else caught mid-write: read it again next poll
+                self._request_version = version
+                if request.seq != self._seen:
+                    self._seen = request.seq
+                    self._handle(request)
+                    self._publish()
+                    return True
         job = self._job
         if job is None:
             return False
