@@ -833,7 +833,9 @@ class Cia402Master:
             return
         age = self._sync.sent - axis.answered_sync
         limit = self.settings.stale_feedback_cycles
-        if age >= limit:
+        # An axis left disabled follows no target: late feedback there (a host that stalled
+        # at start-up) is no danger, and a drive that went silent is the heartbeat's to find.
+        if age >= limit and axis.request is not AxisRequest.DISABLE:
             if tracker.rising(FaultKind.STALE_FEEDBACK):
                 tracker.report(
                     FaultKind.STALE_FEEDBACK, f"no TPDO for {age} cycles (limit {limit})", now_s

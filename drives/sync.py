@@ -76,6 +76,8 @@ class SyncProducer:
         self._echo_stamps = [math.inf] * history
         self._echoed = 0
         self._echo_order_number = 0
+        self._last_echo_bus_s = 0.0
+        self._last_echo_sent_s = 0.0
         self._message = can.Message(
             arbitration_id=SYNC_COB_ID,
             is_extended_id=False,
@@ -118,12 +120,33 @@ class SyncProducer:
             if number <= self._echoed:
                 return  # not one of ours, or already seen
         else:
-            number = self._echoed + 1
-            if number > self.sent:
+            number = self._echo_number_by_interval(message.timestamp)
+            if number is None:
                 return
         self._echoed = number
+        self._last_echo_bus_s = message.timestamp
+        self._last_echo_sent_s = self._sent_stamps[number % self.history]
         self._echo_order_number = number
         self._echo_stamps[number % self.history] = message.timestamp
+
+    def _echo_number_by_interval(self, bus_s: float) -> int | None:
+        """Which SYNC an echo without counter is: the next one unless echoes were lost (a
+        receive queue that overflowed during a stall), then the one whose send time lies as far
+        after the last echoed SYNC's as the echo's bus time after that echo's. Counting alone
+        would shift every later match by each lost echo for good."""
+        first = self._echoed + 1
+        if first > self.sent:
+            return None
+        if not self._echoed or first == self.sent:
+            return first
+        bus_interval_s = bus_s - self._last_echo_bus_s
+        oldest = max(first, self.sent - self.history + 1)
+        return min(
+            range(oldest, self.sent + 1),
+            key=lambda n: abs(
+                self._sent_stamps[n % self.history] - self._last_echo_sent_s - bus_interval_s
+            ),
+        )
 
     def answered(self, timestamp: float) -> int:
         """The number of the SYNC that a frame received with ``timestamp`` answered; 0 when it

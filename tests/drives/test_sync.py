@@ -86,3 +86,21 @@ def test_counter_matching_follows_the_receive_order_of_echoes() -> None:
 def test_counter_overflow_range() -> None:
     with pytest.raises(ValueError, match=r"must be 0 or 2\.\.240"):
         SyncProducer(lambda message: None, history=4, counter_overflow=1)
+
+
+def test_lost_echoes_do_not_shift_later_matches() -> None:
+    producer, sent, clock = _producer()
+    for _ in range(6):
+        clock.now += 0.004
+        producer.transmit()
+    # An adapter clock 500 s behind ours; the echoes of SYNCs 2 to 4 were lost in a stall.
+    for index in (0, 4, 5):
+        sent[index].timestamp -= 500.0
+        producer.on_echo(sent[index])
+    assert producer.answered(sent[4].timestamp + 0.001) == 5
+    assert producer.answered(sent[5].timestamp + 0.001) == 6
+    clock.now += 0.004
+    producer.transmit()
+    sent[6].timestamp -= 500.0
+    producer.on_echo(sent[6])
+    assert producer.answered(sent[6].timestamp + 0.001) == 7
