@@ -3,7 +3,9 @@
 Started (and restarted when it dies) by the supervisor (:func:`planner_main`). Normal scheduling
 class, favoured over the HMI server (:mod:`runtime.processes`): it computes while the cycle and
 the simulated drives, both real-time, take the CPU whenever they need it. It polls the cycle's
-requests between units of work and sleeps :data:`IDLE_SLEEP_S` when there is nothing to do.
+requests between units of work and sleeps when there is nothing to do: :data:`IDLE_SLEEP_S`
+while a job runs (an override or hold must reach the ring within a period or two), one period
+without a job (a start waits that much longer, and an idle machine costs a quarter of the wake-ups).
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ def planner_main(config: MachineConfig, run_dir: str, log_level: str, parent_pid
         logger.info("planner ready")
         while True:
             if not service.poll():
-                time.sleep(IDLE_SLEEP_S)
+                time.sleep(IDLE_SLEEP_S if service.has_job else config.cycle.period_s)
 
 
 def _warm_up(config: MachineConfig) -> None:

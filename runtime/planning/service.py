@@ -120,6 +120,11 @@ class PlannerService:
 
     # -- the loop ----------------------------------------------------------------------------
 
+    @property
+    def has_job(self) -> bool:
+        """Whether a job is being planned or followed (else only requests can bring work)."""
+        return self._job is not None
+
     def poll(self) -> bool:
         """One unit of work; False when there was nothing to do (the caller may sleep briefly)."""
         self._shared.planner_reports.heartbeat.value += 1
