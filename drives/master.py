@@ -576,9 +576,10 @@ class Cia402Master:
 
     def request_fault_reset(self, axes: Iterable[str] | None = None) -> None:
         """Clear the axes' latched faults. A started drive in FAULT gets the bit 7 edge
-        (0x00, 0x80, ...) until it leaves FAULT, then its fault is cleared; a drive whose boot
-        FAILED is booted again (its fault stays until it is ready and reset again); a drive
-        still being looked for or configured keeps its fault. The enable request is kept: to
+        (0x00, 0x80, ...) until it leaves FAULT, then its fault is cleared; a drive being
+        configured (one that came back and booted again) is reset once it is ready; a drive
+        whose boot FAILED is booted again (its fault stays until it is ready and reset again);
+        a drive still being looked for keeps its fault. The enable request is kept: to
         re-enable after a fault, also call :meth:`request_enable`."""
         for axis in self._select(axes):
             axis.boot.retry()
@@ -883,6 +884,8 @@ class Cia402Master:
         return True
 
     def _carry_reset(self, axis: _Axis, state: State | None) -> None:
+        if axis.phase in (BootPhase.CONFIGURING, BootPhase.STARTING):
+            return  # an operator who resets a drive coming back means it once it is ready
         if axis.phase is not BootPhase.READY:
             axis.reset_pending = False  # nothing to reset yet: the fault stays
         elif state is not None and state not in _FAULT_STATES:

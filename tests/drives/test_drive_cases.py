@@ -292,6 +292,26 @@ class TestDriveComesBack(Cases):
             rig.loop.enable()
             assert all(f.fault is None for f in rig.loop.feedback)
 
+    def test_a_reset_while_the_drive_is_configured_again_applies_once_it_is_ready(
+        self, channel: str
+    ) -> None:
+        with self.rig(channel) as rig:
+            rig.loop.boot(self.boot_timeout())
+            drive = rig.launcher.drive_set.drives[2]
+            drive.stop()
+            rig.loop.run_until(lambda fb: fb[1].fault is not None, 5.0, what="drive lost")
+            drive.quirks = DriveQuirks(sdo_delay_s=(0.02, 0.02))  # a configuration to wait for
+            drive.start()
+            rig.loop.run_until(
+                lambda fb: fb[1].phase is BootPhase.CONFIGURING, 3.0, what="configured again"
+            )
+            rig.master.request_fault_reset()
+            feedback = rig.loop.run_until(
+                lambda fb: fb[1].ready and fb[1].fault is None, 5.0, what="reset once ready"
+            )
+            assert feedback[1].state is State.SWITCH_ON_DISABLED
+            rig.loop.enable()
+
     def test_a_lost_drive_is_looked_for_and_configured_when_it_answers_again(
         self, channel: str
     ) -> None:
