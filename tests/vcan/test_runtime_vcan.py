@@ -7,23 +7,26 @@ an injected drive fault, a drive process killed mid-motion, then restarted and r
 reset), because starting the processes is the slowest part inside the emulated VM.
 
 Timing inside the VM (``SOFTMOTION_VCAN_VM=1``): the CPU is emulated (no KVM), Python runs about
-15 times slower on two virtual CPUs shared by five processes (the runtime, three drives, and
-this test with its frame listener), and the guest's timer wake-ups are coarse. So there, and only
-there:
+15 times slower on two virtual CPUs shared by the runtime's four processes, three drive
+processes and this test with its frame listener, and the guest's timer wake-ups are coarse. So
+there, and only there:
 
-- the cycle is 20 ms instead of 4 ms (5x), the curve is a quarter circle with a 10 µm chord
+- the cycle is 50 ms instead of 4 ms: at 20 ms the cycle and the drives' work per period took
+  more than the two CPUs have (SYNC intervals of 38 ms on average at rest, 92 ms during
+  motion, stalls of two seconds); the curve is a quarter circle with a 10 µm chord
   error instead of the paper's curve (see ``CURVE``), run at 25 % feed override;
 - the drive and master heartbeats are 1000 ms instead of 100 ms (10x), the feedback may be 25
   cycles old instead of 10 (a drive process preempted for half a second answers SYNCs that
   long after), and boot and recovery timeouts are 60 s;
 - the following-error window is 5 mm instead of 1 mm: a drive process that answers a SYNC only
-  after the next ones were sent is compared with a later target, 0.5 mm per period late at
-  25 % override. Measured on two virtual CPUs (``scripts/vcan-stage``) over five runs: 70 to
-  99 % of the TPDOs answered before the next SYNC, the latest 1 to 4 periods late (up to
-  1.9 mm, with both host cores also busy elsewhere); on one virtual CPU the five processes
-  need more than it has, the answers fell 11 periods behind and the check tripped at 5.4 mm;
-- the cycle may miss up to 100 consecutive periods (2 s) before it stops the machine, instead of
-  3: the emulated VM was seen to stall the process for half a second; the drives' SYNC-loss
+  after the next ones were sent is compared with a later target, 1.25 mm per period late at
+  25 % override. Measured at 20 ms on two virtual CPUs (``scripts/vcan-stage``) over five
+  runs: 70 to 99 % of the TPDOs answered before the next SYNC, the latest 1 to 4 periods late
+  (up to 1.9 mm, with both host cores also busy elsewhere); on one virtual CPU the five
+  processes need more than it has, the answers fell 11 periods behind and the check tripped at
+  5.4 mm;
+- the cycle may miss up to 100 consecutive periods (5 s) before it stops the machine, instead of
+  3: the emulated VM was seen to stall the process for two seconds; the drives' SYNC-loss
   limit is 100 periods instead of 10 for the same reason;
 - the runtime and the drives keep the normal scheduler: on two emulated CPUs, real-time
   processes that stand for an IPC and three drives (each with hardware of its own on a real
@@ -77,7 +80,7 @@ ARC = NurbsCurve.from_arrays(
 #: there costs about three times its motion time (the planner runs ~8x faster than real time on
 #: a host, Python ~15x slower in the VM), which would underrun the setpoint buffer.
 CURVE: NurbsCurve = ARC if IN_VM else load_curve_file(ROOT / "configs" / "curves" / "paper.yaml")
-PERIOD_MS = 20 if IN_VM else 4
+PERIOD_MS = 50 if IN_VM else 4
 HEARTBEAT_MS = 1000 if IN_VM else 100
 TIMEOUT_SCALE = 10.0 if IN_VM else 1.0
 NODES = (1, 2, 3)
@@ -119,10 +122,10 @@ class VcanMachine:
         document["cycle"]["overrun_limit"] = 100 if IN_VM else 3
         if IN_VM:
             document["cycle"]["realtime"].update(priority=0, spin_us=0)
-            # At 20 ms a 1 µm chord error would limit the arc's feed to 35 mm/s.
+            # At 50 ms a 1 µm chord error would limit the arc's feed to 14 mm/s.
             document["planner"]["chord_error_mm"] = 0.01
             # A TPDO that the VM delivers after the next SYNC is compared with the wrong target:
-            # one period at 100 mm/s is 2 mm, so the window must exceed it.
+            # one period at the arc's 25 mm/s is 1.25 mm, so the window must exceed it.
             for axis in document["axes"]:
                 axis["following_error_window_mm"] = 5.0
         document["can"].update(
@@ -254,15 +257,23 @@ def test_boot_configures_every_drive_by_sdo(machine: VcanMachine, listener: CanL
         lambda s: all(a.boot_phase == BootPhase.READY for a in s.snapshot.axes), 30, "boot"
     )
     for node in NODES:
-        # SDO requests to the node and its answers: configured and read back over the bus.
-        requests = listener.frames_with_id(0x600 + node)
-        # The listener reads on its own thread: let it record the last answer too.
-        answers = listener.wait_for_count(0x580 + node, len(requests), 5 * TIMEOUT_SCALE)
-        assert len(requests) >= 20 and len(answers) == len(requests)
+        # NMT start of that node after its configuration (the listener, on a thread of its
+        # own, records it after every frame before it on the bus).
+        start = listener.wait_for(
+            lambda f, n=node: f.can_id == 0 and f.data == bytes([1, n]), 1, 5 * TIMEOUT_SCALE
+        )
+        frames = listener.frames()
+        frames = frames[: frames.index(start[0])]
+        # Configured and read back over the bus: every object asked for (index and sub-index
+        # of an initiate request; segments carry none) was answered. Probes while the drive
+        # boots may go unanswered or be answered after its boot-up, so frames are not counted.
+        requests = [f for f in frames if f.can_id == 0x600 + node]
+        answers = [f for f in frames if f.can_id == 0x580 + node]
+        asked = {bytes(f.data[1:4]) for f in requests if f.data[0] & 0xE0 in (0x20, 0x40)}
+        answered = {bytes(f.data[1:4]) for f in answers if f.data[0] & 0xE0 in (0x40, 0x60)}
+        assert len(requests) >= 20 and asked <= answered, sorted(asked - answered)
         assert all(len(f.data) == 8 for f in requests + answers)
         assert not any(f.data[0] == 0x80 for f in answers), "an SDO transfer was aborted"
-        # NMT start of that node after its configuration.
-        assert any(f.data == bytes([0x01, node]) for f in listener.frames_with_id(0))
     status = machine.client.status().snapshot
     assert status.state is S.DISABLED and status.fault is None
 
@@ -438,8 +449,14 @@ def test_killed_drive_is_detected_then_restarted_and_recovered(
     machine.drives[3].wait()
     status = machine.wait_for(lambda s: s.snapshot.state is S.ERROR_STOP, 5, "ERROR_STOP")
     assert status.snapshot.fault.kind in (FaultKind.STALE_FEEDBACK, FaultKind.HEARTBEAT_LOSS)
+    # The heartbeat loss is the cause, or listed after the stale feedback that came first.
     lost = machine.wait_for(
-        lambda s: s.snapshot.fault.kind is FaultKind.HEARTBEAT_LOSS, 5, "heartbeat loss"
+        lambda s: (
+            s.snapshot.fault.kind is FaultKind.HEARTBEAT_LOSS
+            or "further fault: axis Z: no heartbeat" in machine.log.read_text()
+        ),
+        5,
+        "heartbeat loss",
     )
     detected_s = time.time()
     last_heartbeat_s = max(f.timestamp_ns for f in listener.frames() if f.can_id == 0x703) * 1e-9
