@@ -2,9 +2,9 @@
 
 Part 1, all at once on one ``local`` CAN bus (``--seconds`` of motion, 60 by default):
 
-- a bare loop in a process of its own (:class:`runtime.scheduler.CyclicTask`, SCHED_FIFO 80,
-  mlockall, the runtime's spin) that sends one frame (COB-ID 0x7E0) as it wakes each period:
-  the reference for wake-up lateness and for frame timing on the bus;
+- a bare loop in a process of its own (:class:`runtime.scheduler.CyclicTask` with the real-time
+  settings of ``configs/sim.yaml``: SCHED_FIFO, mlockall, spin) that sends one frame (COB-ID
+  0x7E0) as it wakes each period: the reference for wake-up lateness and frame timing on the bus;
 - the runtime (supervisor, cycle, planner, HMI and simulated drives as processes) running the
   paper's curve again and again, the feed override changed every 100 ms (30..150 %), ten Modbus
   clients (a process of their own) reading the whole core status (one request) at 20 Hz, logging
@@ -55,7 +55,8 @@ from runtime.supervisor import Runtime
 ROOT = Path(__file__).resolve().parents[1]
 SYNC_COB_ID = 0x80
 BARE_COB_ID = 0x7E0
-REALTIME = RealtimeConfig(priority=80, cpu=None, lock_memory=True, gc="normal", spin_us=200)
+#: The bare loop runs with the simulated machine's real-time settings (priority, spin).
+SIM_REALTIME: RealtimeConfig = load_config(ROOT / "configs" / "sim.yaml").cycle.realtime
 OVERRIDES = (30.0, 60.0, 100.0, 150.0, 80.0, 120.0)
 OVERRIDE_EVERY_S = 0.1
 CLIENTS = 10
@@ -80,7 +81,7 @@ def bare_loop(channel: str, periods: int, period_s: float, results) -> None:
     task = CyclicTask(
         period_s,
         step,
-        realtime=REALTIME,
+        realtime=replace(SIM_REALTIME, gc="normal"),
         overrun_limit=periods,
         name="bare",
         lateness_window_cycles=periods,
