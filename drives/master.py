@@ -476,9 +476,7 @@ class Cia402Master:
         try:
             send_frames(frames)
         except can.CanError as exc:
-            self._send_errors += 1
-            if self._send_errors == 1:
-                logger.warning("CAN send of the period's frames failed: %s", exc)
+            self._send_failed("the period's frames", exc)
 
     def receive(self, now_s: float) -> int:
         """Drain the bus without waiting and dispatch every frame; return how many.
@@ -643,9 +641,13 @@ class Cia402Master:
         try:
             self.bus.send(message)
         except can.CanError as exc:
-            self._send_errors += 1
-            if self._send_errors == 1:
-                logger.warning("CAN send of 0x%03X failed: %s", message.arbitration_id, exc)
+            self._send_failed(f"0x{message.arbitration_id:03X}", exc)
+
+    def _send_failed(self, what: str, exc: can.CanError) -> None:
+        # Counted always, logged once: a bus that fails every period must not flood the log.
+        self._send_errors += 1
+        if self._send_errors == 1:
+            logger.warning("CAN send of %s failed: %s", what, exc)
 
     def _send_data(self, can_id: int, data: bytes) -> None:
         self._send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
