@@ -20,8 +20,8 @@ from machine_process import (
     PAPER,
     RUN_TIMEOUT_S,
     Machine,
+    assert_drives_reach_the_end,
     enable_and_start,
-    end_positions,
     run_paper_polled,
 )
 
@@ -116,7 +116,7 @@ def test_upload_reject_bad_curves_run_to_the_end(machine: Machine) -> None:
     status = client.status()
     assert status.snapshot.state is S.STANDBY
     assert status.snapshot.progress_permille == 1000
-    np.testing.assert_allclose(end_positions(status), PAPER.end_point, atol=1e-3)
+    assert_drives_reach_the_end(client)
 
 
 def test_refused_commands_are_results_and_unmapped_addresses_answer_2(machine: Machine) -> None:
