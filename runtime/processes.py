@@ -13,7 +13,9 @@ The supervisor (:mod:`runtime.supervisor`) starts the children with multiprocess
   stops the machine; the HMI server and the supervisor at the normal class. A real-time HMI
   server was tried: ten clients reading the whole status at 20 Hz then kept the planner from the
   CPU on two cores until the setpoints ran short. Threads a process starts later inherit its
-  class.
+  class;
+- once set up, hands what it built to the collector's permanent generation
+  (:func:`freeze_start_up_objects`), so a full collection never walks it again.
 
 Linux only (prctl, sched_setscheduler); where a setting is refused, one warning says so and the
 process goes on without it.
@@ -22,6 +24,7 @@ process goes on without it.
 from __future__ import annotations
 
 import ctypes
+import gc
 import logging
 import os
 import signal
@@ -72,3 +75,14 @@ def favour(nice: int, role: str) -> bool:
         logger.warning("%s: nice %d refused (%s); default share of the CPU", role, nice, exc)
         return False
     return True
+
+
+def freeze_start_up_objects() -> None:
+    """Move every object alive now out of the garbage collector's reach (``gc.freeze``).
+
+    What a process builds at start-up (modules, CANopen object dictionaries, the Modbus
+    register map) lives as long as the process, yet a full collection walks all of it: 9 ms
+    in the simulated drives' process on a 2-core host, over two periods without an answer to
+    SYNC. Frozen, a full collection there takes about 15 µs.
+    """
+    gc.freeze()

@@ -14,7 +14,12 @@ from drives.sim.drive import start_simulated_drives
 from drives.sim.dynamics import DriveModel
 from runtime.config import MachineConfig
 from runtime.logs import queued_logging
-from runtime.processes import prepare_child, realtime_priority, simulation_priority
+from runtime.processes import (
+    freeze_start_up_objects,
+    prepare_child,
+    realtime_priority,
+    simulation_priority,
+)
 
 #: SYNC-loss limit of the simulated drives, in periods beyond the longest SYNC gap the cycle's
 #: overrun limit tolerates: a run of ``overrun_limit`` missed periods leaves a gap of
@@ -46,6 +51,7 @@ def simulation_main(config: MachineConfig, log_level: str, parent_pid: int) -> N
                 if axis.name in config.simulation.quirks
             },
         )
+        freeze_start_up_objects()
         with drives:
             while not stop.wait(0.5):
                 pass

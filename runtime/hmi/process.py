@@ -16,7 +16,7 @@ from runtime.config import MachineConfig
 from runtime.hmi.link import SharedMachineLink
 from runtime.hmi.server import HmiServer
 from runtime.logs import queued_logging
-from runtime.processes import prepare_child
+from runtime.processes import freeze_start_up_objects, prepare_child
 from runtime.programs import ProgramStore
 from runtime.shared import SharedState, shared_path
 
@@ -31,6 +31,7 @@ def hmi_main(config: MachineConfig, run_dir: str, log_level: str, parent_pid: in
         link = SharedMachineLink(config, shared, ProgramStore(Path(run_dir) / "programs"))
         server = HmiServer(link, config.modbus)
         server.start()
+        freeze_start_up_objects()
         try:
             while not stop.wait(0.5):
                 pass

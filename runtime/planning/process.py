@@ -21,7 +21,7 @@ from runtime.config import MachineConfig
 from runtime.curves import limits_for_curve, planner_limits
 from runtime.logs import queued_logging
 from runtime.planning.service import PlannerService
-from runtime.processes import PLANNER_NICE, favour, prepare_child
+from runtime.processes import PLANNER_NICE, favour, freeze_start_up_objects, prepare_child
 from runtime.shared import SharedState, shared_path
 
 logger = logging.getLogger(__name__)
@@ -40,6 +40,7 @@ def planner_main(config: MachineConfig, run_dir: str, log_level: str, parent_pid
         shared = SharedState.attach(shared_path(run_dir), tuple(axis.name for axis in config.axes))
         _warm_up(config)
         service = PlannerService(shared, config)
+        freeze_start_up_objects()
         logger.info("planner ready")
         while True:
             if not service.poll():
