@@ -42,6 +42,7 @@ from __future__ import annotations
 import mmap
 import os
 import struct
+import time
 from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path as FilePath
@@ -83,6 +84,9 @@ LATER_FAULTS = 8
 RECENT_COMMANDS = 16
 #: Attempts a reader makes to catch a record between two writes before it gives up for now.
 READ_ATTEMPTS = 4
+#: Tries to catch a status snapshot between two of the cycle's writes before the last one read
+#: stands in, and the pause between them [s] (the cycle's write takes a few µs).
+SNAPSHOT_ATTEMPTS, SNAPSHOT_RETRY_S = 50, 0.0001
 
 _CACHE_LINE = 64
 
@@ -698,6 +702,7 @@ class StatusBoard:
         self.axis_names = axis_names
         self._values: list[object] = list(_STATUS_LAYOUT.unpack(bytes(_STATUS_LAYOUT.size)))
         self._offsets = _status_offsets()
+        self._last_read: StatusSnapshot | None = None
 
     @staticmethod
     def size() -> int:
@@ -759,11 +764,21 @@ class StatusBoard:
         return self._cell.written
 
     def snapshot(self) -> StatusSnapshot | None:
-        """The last published snapshot; None before the first (or caught mid-write)."""
-        copy = self._cell.read_bytes()
-        if copy is None:
-            return None
-        return _decode_status(_STATUS_LAYOUT.unpack(copy), self.axis_names)
+        """The last published snapshot; None only before the first.
+
+        A read that meets the cycle mid-write is tried again after a short pause; should the
+        cycle be writing at every try (a reader preempted for a while), the snapshot this
+        reader got last stands in.
+        """
+        for _ in range(SNAPSHOT_ATTEMPTS):
+            copy = self._cell.read_bytes()
+            if copy is not None:
+                self._last_read = _decode_status(_STATUS_LAYOUT.unpack(copy), self.axis_names)
+                return self._last_read
+            if self._last_read is None and not self.published:
+                return None
+            time.sleep(SNAPSHOT_RETRY_S)
+        return self._last_read
 
 
 _STATUS_HEAD_FIELDS = (

@@ -233,6 +233,7 @@ class Runtime:
     # -- the machine -------------------------------------------------------------------------
 
     def status(self) -> StatusSnapshot | None:
+        """The cycle's last published status; None only before its first."""
         return self.shared.status.snapshot()
 
     def wait_for(

@@ -14,7 +14,6 @@ snapshot's decoding is cached per published period); a worker thread calls ``pro
 
 from __future__ import annotations
 
-import time
 from typing import Protocol
 
 from runtime.commands import Command
@@ -49,12 +48,6 @@ class MachineLink(Protocol):
         ...
 
 
-#: Tries to catch a snapshot between two of the cycle's writes before giving up for this read.
-SNAPSHOT_ATTEMPTS = 50
-#: Pause between those tries [s] (the cycle's write takes a few µs).
-SNAPSHOT_RETRY_S = 0.0001
-
-
 class SharedMachineLink:
     """What the HMI server needs of the machine, over the runtime's shared memory."""
 
@@ -63,20 +56,10 @@ class SharedMachineLink:
         self.axis_names = tuple(axis.name for axis in config.axes)
         self.programs = programs
         self._shared = shared
-        self._last: StatusSnapshot | None = None
 
     def snapshot(self) -> StatusSnapshot | None:
         """The last period's status; None until the cycle has published its first one."""
-        status = self._shared.status
-        for _ in range(SNAPSHOT_ATTEMPTS):
-            snapshot = status.snapshot()
-            if snapshot is not None:
-                self._last = snapshot
-                return snapshot
-            if self._last is None and not status.published:
-                return None
-            time.sleep(SNAPSHOT_RETRY_S)
-        return self._last
+        return self._shared.status.snapshot()
 
     def post(self, command: Command) -> int | None:
         """Queue ``command`` for the cycle; its ticket, or None when the mailbox is full."""

@@ -21,6 +21,7 @@ from runtime.shared import (
     PlanRequestKind,
     SegmentKind,
     SegmentSpec,
+    SeqlockCell,
     SharedState,
 )
 from runtime.status import Fault, FaultKind, ProgramStatus
@@ -97,6 +98,21 @@ def test_status_round_trips_faults_records_programs_axes_and_cuts_text(
     assert (axis.following_error_mm, axis.peak_following_error_mm) == (-0.25, 0.5)
     assert (axis.statusword, axis.boot_phase, axis.fault) == (0x1237, 4, "axis fault")
     assert status.progress_permille == 333
+
+
+def test_a_reader_that_meets_the_cycle_mid_write_gets_its_last_snapshot(
+    shared: SharedState, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    board = shared.status
+    board.set(state=5, feed_mm_s=12.5)
+    board.publish()
+    first = board.snapshot()
+    assert first.feed_mm_s == 12.5
+    board.set(feed_mm_s=20.0)
+    board.publish()
+    # Every try meets a write in progress (a reader preempted while the cycle writes).
+    monkeypatch.setattr(SeqlockCell, "read_bytes", lambda cell: None)
+    assert board.snapshot() == first
 
 
 def test_planner_request_round_trips_segments(shared: SharedState) -> None:
