@@ -7,11 +7,13 @@ returns, so the process loop stays responsive to the cycle's requests:
 
 - a new request (:class:`runtime.shared.PlanRequest`): FOLLOW starts the job in the ring the
   cycle does not read and offers it from row 0; CANCEL drops it; CHANGE_LIMITS marks a splice;
-- a splice: the rows are re-planned with the new override from the state of a row
-  :attr:`PlannerService.splice_lead_periods` after the one the cycle takes next (the ring rows
-  carry feed and acceleration), written into the other ring from the row after it, and
-  offered; the cycle accepts it if it has not reached that row, else it is made again further
-  ahead;
+- a splice: the rows are re-planned with the new override from the state of a row ahead of
+  the one the cycle takes next (the ring rows carry feed and acceleration), written into the
+  other ring from the row after it, and offered; the cycle accepts it if it has not reached
+  that row, else it is made again further ahead. How far ahead is how many periods the last
+  splice took to plan (:attr:`PlannerService.splice_lead_periods` at least): re-planning costs
+  from 2 ms where the window ahead is easy to 12 ms where it holds a sharp stretch, and a try
+  that comes too late costs a whole re-plan more than one started a little further ahead;
 - otherwise the next block of the job, up to :attr:`PlannerService.buffer_high_periods` rows
   ahead of the cycle.
 
@@ -56,7 +58,7 @@ logger = logging.getLogger(__name__)
 
 #: Programs whose planning geometry is kept for re-plans (resume, override, restart).
 PATH_CACHE_SIZE = 4
-#: Lead of the second try of a splice the cycle refused, periods (then it doubles).
+#: Least lead of the next try of a splice the cycle refused, periods.
 SPLICE_RETRY_MIN_PERIODS = 2
 #: A splice is offered with rows for its stop plus this many periods of planning time.
 SPLICE_SLACK_PERIODS = 25
@@ -92,10 +94,12 @@ class PlannerService:
 
     #: Plan this many periods ahead of the cycle before waiting.
     buffer_high_periods = 500
-    #: A splice re-plans from the state of the row the cycle takes next plus this many (its new
-    #: rows follow that row): 0 changes the setpoint two periods after the command when the
-    #: planner answers within about a period and a half; an offer that comes too late is
-    #: refused and made again further ahead (:data:`SPLICE_RETRY_MIN_PERIODS`, then doubling).
+    #: A splice re-plans from the state of the row the cycle takes next plus at least this many
+    #: (its new rows follow that row), and at least as many as the last splice took to plan:
+    #: 0 changes the setpoint two periods after the command when the planner answers within
+    #: about a period and a half; an offer that comes too late is refused and made again
+    #: further ahead (by at least :data:`SPLICE_RETRY_MIN_PERIODS`, and beyond the periods the
+    #: refused one took).
     splice_lead_periods = 0
     #: Rows per planned block (the first block of a job or splice comes as soon as it is planned).
     block_periods = 64
@@ -109,6 +113,8 @@ class PlannerService:
         self._update = config.planner.update
         self._paths: OrderedDict[int, Path] = OrderedDict()
         self._job: _Job | None = None
+        self._splice_periods = 0
+        """Periods the cycle went on while the last splice was planned."""
         self._seen = 0
         self._request_version = -1
         # A restarted planner goes on numbering offers after its predecessor's: the cycle
@@ -179,7 +185,7 @@ class PlannerService:
                 self._job = None
             elif request.kind is PlanRequestKind.CHANGE_LIMITS:
                 job.splice_override = request.override_percent
-                job.splice_lead = self.splice_lead_periods
+                job.splice_lead = max(self.splice_lead_periods, self._splice_periods)
 
     def _start(self, request: PlanRequest) -> _Job:
         paths = tuple(self._path(segment) for segment in request.segments)
@@ -250,9 +256,7 @@ class PlannerService:
             if not job.live:
                 self._job = None  # the cycle moved on to another job
             else:
-                # The cycle got there first: try further ahead.
-                job.splice_lead = max(SPLICE_RETRY_MIN_PERIODS, 2 * job.splice_lead)
-                job.candidate = None
+                self._try_further_ahead(job)
             return True
         job.live = True
         job.ring = offer.ring
@@ -373,9 +377,22 @@ class PlannerService:
             self._write_block(spliced, other)
             if spliced.done or spliced.pending_state is not None:
                 break  # its rows end at rest: nothing to cover beyond them
+        now = self._shared.cycle_reports.latest()
+        self._splice_periods = now.next_row - cycle.next_row
         job.candidate = spliced
-        self._offer(job, other_index, row + 1)
+        if now.next_row > row + 1:
+            self._try_further_ahead(job)  # the cycle took the first new row meanwhile
+        else:
+            self._offer(job, other_index, row + 1)
         return True
+
+    def _try_further_ahead(self, job: _Job) -> None:
+        """The cycle got to the splice's first row first: plan it again beyond what this try
+        took."""
+        job.splice_lead = max(
+            SPLICE_RETRY_MIN_PERIODS, job.splice_lead + 1, self._splice_periods + 1
+        )
+        job.candidate = None
 
     def _rows_to_stop(self, state: MotionState) -> int:
         """Periods a jerk-limited stop from ``state`` takes."""

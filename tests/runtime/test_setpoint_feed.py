@@ -19,6 +19,7 @@ from setpoint_checks import chord_errors, differences, realised_feed
 from planner.stream import Path as PlannerPath
 from runtime.commands import CommandCode, CommandResult
 from runtime.curves import limits_for_curve, planner_limits
+from runtime.planning.service import PlannerService
 from runtime.programs import Program, load_program_curve
 from runtime.shared import RingOffer
 from runtime.status import MachineState, MotionPhase
@@ -126,6 +127,36 @@ def test_a_splice_offered_too_late_is_refused_and_made_again_further_ahead(
     answer = h.shared.cycle_reports.latest()
     assert answer.offer_answered > offer.seq and answer.offer_accepted
     assert realised_feed(h.target_array()[-60:], T).max() <= VMAX * 0.4 * 1.001
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_a_splice_starts_as_far_ahead_as_the_last_one_took_to_plan(
+    h: Harness, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    start(h, 20.0)
+    write_block = PlannerService._write_block
+
+    def slow_write_block(self: PlannerService, job: object, ring: object) -> None:
+        # A planner on a busy host: the cycle goes on for 3 periods while a block is planned.
+        write_block(self, job, ring)
+        h.period(3, plan=False)
+
+    monkeypatch.setattr(PlannerService, "_write_block", slow_write_block)
+    # The first splice starts at the row the cycle takes next: planned too late for it (never
+    # offered then), and made again further ahead.
+    h.command(CommandCode.SET_OVERRIDE, override_percent=60.0)
+    h.until(lambda s: s.stats.overrides_applied == 1, 200)
+    first = h.status.stats.override_latency_periods
+    assert first > 3
+    # The next starts as far ahead as that one took: accepted at its first offer, sooner.
+    offers = h.shared.planner_reports.latest().offer.seq
+    h.command(CommandCode.SET_OVERRIDE, override_percent=40.0)
+    h.until(lambda s: s.stats.overrides_applied == 2, 200)
+    assert h.shared.planner_reports.latest().offer.seq == offers + 1
+    assert h.status.stats.override_latency_periods < first
+    monkeypatch.undo()
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     check_limits(h.target_array(), VMAX)
     check_on_curve_and_end(h, h.program_under_test)
