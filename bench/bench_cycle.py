@@ -228,7 +228,11 @@ def part_one(seconds: float, period_s: float) -> None:
     logging.basicConfig(filename=log_file, level=logging.INFO)
     stop = context.Event()
     results = {name: context.Queue() for name in ("bare", "listener", "clients")}
-    listen = context.Process(target=listener, args=(channel, stop, results["listener"]))
+    # Daemons: should the run fail, a helper left holding unread results never keeps the
+    # bench from exiting.
+    listen = context.Process(
+        target=listener, args=(channel, stop, results["listener"]), daemon=True
+    )
     listen.start()
     runtime = Runtime(config, log_level="INFO")
     report: dict = {}
@@ -236,11 +240,13 @@ def part_one(seconds: float, period_s: float) -> None:
         runtime.start()
         runtime.wait_for(lambda s: all(a.boot_phase == BootPhase.READY for a in s.axes), 30.0)
         clients = context.Process(
-            target=modbus_clients, args=(config.modbus.port, stop, results["clients"])
+            target=modbus_clients, args=(config.modbus.port, stop, results["clients"]), daemon=True
         )
         clients.start()
         periods = round((seconds + 10.0) / period_s)
-        bare = context.Process(target=bare_loop, args=(channel, periods, period_s, results["bare"]))
+        bare = context.Process(
+            target=bare_loop, args=(channel, periods, period_s, results["bare"]), daemon=True
+        )
         bare.start()
         time.sleep(2.0)  # everything running before the measured motion
         run_motion(runtime, seconds, report)
