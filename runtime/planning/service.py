@@ -378,7 +378,7 @@ class PlannerService:
             if spliced.done or spliced.pending_state is not None:
                 break  # its rows end at rest: nothing to cover beyond them
         now = self._shared.cycle_reports.latest()
-        self._splice_periods = now.next_row - cycle.next_row
+        self._splice_periods = max(0, now.next_row - cycle.next_row)  # < 0: a new job began
         job.candidate = spliced
         if now.next_row > row + 1:
             self._try_further_ahead(job)  # the cycle took the first new row meanwhile
