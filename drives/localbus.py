@@ -16,7 +16,10 @@ python-can's SocketCAN and virtual buses), standing for the time the frame was o
 a receiver that reads late still sees when the frame was sent. With ``receive_own_messages``
 a bus also receives its own frames (``is_rx`` False, as python-can marks them), through its pipe,
 in order with the others. :meth:`LocalBus.send_frames` sends several frames in one write per
-receiver: the cycle hands a period's RPDOs and its SYNC over at once.
+receiver: the cycle hands a period's RPDOs and its SYNC over at once. With ``preserve_timestamps``
+(as python-can's virtual bus has it) a frame keeps the timestamp its message carries: simulated
+hardware stamps its answers with when a real device would have put them on the wire, however
+late its process got to send them.
 
 Units: seconds (timestamps). Threading: one bus per thread, like python-can's buses; ``recv``
 blocks at most its timeout, ``send`` never blocks.
@@ -71,6 +74,8 @@ class LocalBus(can.BusABC):
 
     :param channel: the bus name; buses with the same name are connected.
     :param receive_own_messages: also receive the frames this bus sends.
+    :param preserve_timestamps: send a message's own timestamp instead of the time of sending
+        (a message without one, 0, still gets the time of sending).
     :param can_filters: python-can filters (applied in software).
     """
 
@@ -78,6 +83,7 @@ class LocalBus(can.BusABC):
         self,
         channel: str = "softmotion",
         receive_own_messages: bool = False,
+        preserve_timestamps: bool = False,
         can_filters: can.typechecking.CanFilters | None = None,
         **kwargs: Any,
     ) -> None:
@@ -96,6 +102,7 @@ class LocalBus(can.BusABC):
         self._fifo = os.open(self._address, os.O_RDWR | os.O_NONBLOCK)
         _enlarge(self._fifo)
         self._own = receive_own_messages
+        self._preserve_timestamps = preserve_timestamps
         self._writers: dict[str, int] = {}
         self._peers: list[str] = []
         self._peers_stamp = -1
@@ -120,9 +127,17 @@ class LocalBus(can.BusABC):
         """
         if len(messages) > MAX_FRAMES_PER_WRITE:
             raise ValueError(f"{len(messages)} frames, at most {MAX_FRAMES_PER_WRITE} at once")
-        stamp = time.time()
-        frames = b"".join(_pack(message, stamp, 0) for message in messages)
-        own = b"".join(_pack(message, stamp, _OWN) for message in messages) if self._own else b""
+        now = time.time()
+        stamps = [
+            message.timestamp if self._preserve_timestamps and message.timestamp else now
+            for message in messages
+        ]
+        frames = b"".join(_pack(m, stamp, 0) for m, stamp in zip(messages, stamps, strict=True))
+        own = (
+            b"".join(_pack(m, stamp, _OWN) for m, stamp in zip(messages, stamps, strict=True))
+            if self._own
+            else b""
+        )
         self._refresh_peers()
         for peer in self._peers:
             if peer == self._address:

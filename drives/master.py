@@ -198,6 +198,8 @@ class MasterSettings:
     sdo_retries: int = 2
     """A transfer that timed out is tried this many times more."""
     stale_feedback_cycles: int = 3
+    """An axis enabled or asked to enable is faulted once this many SYNCs in a row went
+    unanswered (the newest TPDO answers the SYNC ``stale_feedback_cycles + 1`` back)."""
     quick_stop_option: int = 2
     """0x605A: 2 = quick stop ramp, then SWITCH ON DISABLED."""
     fault_reaction_option: int = 2
@@ -834,14 +836,18 @@ class Cia402Master:
             )
             axis.boot.rebooted()
             return
-        age = self._sync.sent - axis.answered_sync
+        # Age 1 is on time: the answer to the SYNC just sent cannot be here yet. So the
+        # answers missing are one fewer than the age, and the limit counts those.
+        missing = self._sync.sent - axis.answered_sync - 1
         limit = self.settings.stale_feedback_cycles
         # An axis left disabled follows no target: late feedback there (a host that stalled
         # at start-up) is no danger, and a drive that went silent is the heartbeat's to find.
-        if age >= limit and axis.request is not AxisRequest.DISABLE:
+        if missing >= limit and axis.request is not AxisRequest.DISABLE:
             if tracker.rising(FaultKind.STALE_FEEDBACK):
                 tracker.report(
-                    FaultKind.STALE_FEEDBACK, f"no TPDO for {age} cycles (limit {limit})", now_s
+                    FaultKind.STALE_FEEDBACK,
+                    f"no TPDO for {missing} cycles (limit {limit})",
+                    now_s,
                 )
         else:
             tracker.falling(FaultKind.STALE_FEEDBACK)

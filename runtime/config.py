@@ -124,7 +124,7 @@ class CanConfig:
     sdo_retries: int = 2
     """A transfer that timed out is tried this many times more."""
     stale_feedback_cycles: int = 3
-    """An axis whose TPDO is older than this many cycles is faulted."""
+    """An axis is faulted once this many SYNCs in a row went unanswered by its TPDO."""
     sync_counter_overflow: int = 0
     """0: SYNC without data, feedback matched by timestamp; 2..240: counted SYNC (0x1019 on
     every drive), feedback matched by the order of our SYNC's echo."""

@@ -1241,9 +1241,9 @@ def start_simulated_drives(
     """
     if len(set(node_ids)) != len(node_ids):
         raise ValueError(f"simulated drives: node_ids {list(node_ids)} repeat a node-ID")
-    # On a virtual channel the drives' frames keep the stamps they are sent with (when they are
-    # on the wire); SocketCAN and other buses stamp them on reception anyway.
-    options = {"preserve_timestamps": True} if interface == "virtual" else {}
+    # On a virtual or local channel the drives' frames keep the stamps they are sent with (when
+    # they are on the wire); SocketCAN and other buses stamp them on reception anyway.
+    options = {"preserve_timestamps": True} if interface in ("virtual", "local") else {}
     network = canopen.Network(open_bus(interface, channel, bitrate, **options))
     network.NOTIFIER_CYCLE = SIM_NOTIFIER_CYCLE_S
     network.NOTIFIER_SHUTDOWN_TIMEOUT = SIM_NOTIFIER_SHUTDOWN_TIMEOUT_S

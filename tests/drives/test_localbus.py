@@ -52,6 +52,28 @@ def test_frames_from_another_process_arrive_in_order_with_their_send_time(channe
     assert stamps == sorted(stamps) and before <= stamps[0] and stamps[-1] <= after
 
 
+def test_preserved_timestamps_only_when_asked_and_only_where_a_message_has_one(
+    channel: str,
+) -> None:
+    receiver = open_bus("local", channel)
+    preserving = open_bus("local", channel, preserve_timestamps=True)
+    plain = open_bus("local", channel)
+    try:
+        time.sleep(2 * PEER_CHECK_S)
+        wire_s = time.time() - 1.0
+        before = time.time()
+        preserving.send(can.Message(arbitration_id=0x181, data=b"\x01", timestamp=wire_s))
+        preserving.send(can.Message(arbitration_id=0x182, data=b"\x02"))
+        plain.send(can.Message(arbitration_id=0x183, data=b"\x03", timestamp=wire_s))
+        received = {m.arbitration_id: m.timestamp for m in (receiver.recv(0.5) for _ in range(3))}
+        after = time.time()
+    finally:
+        for bus in (receiver, preserving, plain):
+            bus.shutdown()
+    assert received[0x181] == wire_s
+    assert before <= received[0x182] <= after and before <= received[0x183] <= after
+
+
 def test_own_frames_only_when_asked_and_filters_apply(channel: str) -> None:
     plain = open_bus("local", channel)
     own = open_bus("local", channel, receive_own_messages=True)
