@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from sim_machine import sim_document
 
 from runtime.commands import CommandCode, CommandResult
 from runtime.curves import load_curve_file
@@ -82,17 +83,24 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
+def steal_time_s() -> float:
+    """CPU time the hypervisor gave other guests while this host wanted it, all CPUs (s)."""
+    with open("/proc/stat") as stat:
+        fields = stat.readline().split()
+    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+
+
 class Machine:
     """``softmotion run`` in a subprocess with its own Modbus port."""
 
     def __init__(self, tmp: Path, **modbus: object) -> None:
         tmp.mkdir(parents=True, exist_ok=True)
-        document = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
         self.port = free_port()
-        document["modbus"].update(port=self.port, **modbus)
+        document = sim_document({"modbus": {"port": self.port, **modbus}})
         self.config = tmp / "machine.yaml"
         self.config.write_text(yaml.safe_dump(document))
         self.log = tmp / "run.log"
+        self.steal_at_start_s = steal_time_s()
         with self.log.open("w") as log:
             self.process = subprocess.Popen(
                 [str(SOFTMOTION), "run", "--config", str(self.config)],
@@ -112,6 +120,12 @@ class Machine:
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait(5)
+        # Printed for pytest to show beside a failure: what the machine logged as going wrong,
+        # and how long its host took the CPUs away meanwhile.
+        for line in self.log.read_text(errors="replace").splitlines():
+            if " WARNING " in line or " ERROR " in line:
+                print(line)
+        print(f"host steal time while the machine ran: {steal_time_s() - self.steal_at_start_s} s")
 
     def hmi(self, *argv: str) -> subprocess.CompletedProcess[str]:
         """``softmotion hmi --port P ARGV`` as a subprocess."""

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from machine_files import write_machine
+from sim_machine import HOST_STALL_LIMITS
 
 pytestmark = pytest.mark.slow
 
@@ -55,7 +56,7 @@ def machine_state(port: int) -> tuple[str, list[str]]:
 
 
 def test_a_runtime_killed_while_moving_restarts_disabled(tmp_path: Path) -> None:
-    config = write_machine(tmp_path)
+    config = write_machine(tmp_path, HOST_STALL_LIMITS)
     port = int(re.search(r"port: (\d+)", config.read_text()).group(1))
     log = tmp_path / "machine.log"
     process = start_machine(config, port, log)

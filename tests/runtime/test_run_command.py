@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from sim_machine import sim_document
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
@@ -24,9 +25,9 @@ def free_port() -> int:
 
 
 def machine_config(tmp_path: Path) -> Path:
-    document = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
-    document["can"]["channel"] = f"run-{uuid.uuid4().hex[:8]}"
-    document["modbus"]["port"] = free_port()
+    document = sim_document(
+        {"can": {"channel": f"run-{uuid.uuid4().hex[:8]}"}, "modbus": {"port": free_port()}}
+    )
     path = tmp_path / "machine.yaml"
     path.write_text(yaml.safe_dump(document))
     return path
