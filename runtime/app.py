@@ -91,17 +91,25 @@ def run_machine(
 
 
 def _demo(runtime: Runtime, program: Program, stop_requested: threading.Event, out: TextIO) -> int:
-    runtime.command(CommandCode.ENABLE)
     try:
+        runtime.command(CommandCode.ENABLE)
         runtime.wait_for(
             lambda s: s.state in (MachineState.STANDBY, MachineState.ERROR_STOP), ENABLE_TIMEOUT_S
         )
+    except CommandRefused:
+        # Refused in ERROR_STOP: a drive faulted before the enable was judged (one in FAULT at
+        # power-on, on a slow host); the cause, below, says more than the refusal.
+        status = runtime.status()
+        if status is None or status.state is not MachineState.ERROR_STOP:
+            raise
     except TimeoutError as exc:
         raise RuntimeFault(f"drives not enabled: {exc}") from None
     status = runtime.status()
     assert status is not None
     if status.state is MachineState.ERROR_STOP:
-        raise RuntimeFault(f"drives not enabled: {status.message}")
+        # The fault, not the message: a command judged since (the curve's load) replaces that.
+        cause = f"error stop: {status.fault.text}" if status.fault else status.message
+        raise RuntimeFault(f"drives not enabled: {cause}")
     started = time.monotonic()
     runtime.command(CommandCode.START)
     print("demo: running the paper's curve", file=out, flush=True)

@@ -379,7 +379,12 @@ class TestLateAdapter(Cases):
             default = max(abs(fb[2].following_error_mm) for fb in steady)
             assert fitted < 0.01
             assert default == pytest.approx(2 * SPEED_MM_S * self.PERIOD_S, abs=0.01)
-            assert rig.loop.feedback[2].fault.kind is FaultKind.FOLLOWING_ERROR
+            # An event, not necessarily the axis's first fault: a host that stalls this process
+            # for 20 ms leaves five SYNCs unanswered, stale feedback, before the window trips.
+            assert (
+                "Z",
+                FaultKind.FOLLOWING_ERROR,
+            ) in {(event.axis, event.kind) for event in rig.loop.events}
 
 
 # -- case 11: drive faults during a stop after a host stall ---------------------------------------
