@@ -61,7 +61,9 @@ def test_a_runtime_killed_while_moving_restarts_disabled(tmp_path: Path) -> None
     log = tmp_path / "machine.log"
     process = start_machine(config, port, log)
     try:
-        for action in (("enable",), ("load", str(PAPER)), ("start",)):
+        # At 20 % the curve moves for about 9 s: still moving when a slow host has started the
+        # status command below.
+        for action in (("enable",), ("load", str(PAPER)), ("override", "20"), ("start",)):
             done = hmi(port, *action)
             assert done.returncode == 0, (action, done.stdout, done.stderr, log.read_text())
         state, drives = machine_state(port)
