@@ -84,6 +84,10 @@ REALTIME_FIX = (
     "a PREEMPT_RT kernel (linux-image-rt-amd64), the cycle's CPU isolated "
     f"(isolcpus, nohz_full, irqaffinity) and cycle.realtime.cpu set to it; see {DOCS}"
 )
+STOLEN_FIX = (
+    "this is a virtual machine whose host took its CPUs away (steal time): give it dedicated, "
+    "pinned CPUs, or run the machine on bare metal"
+)
 
 
 class Verdict(Enum):
@@ -461,19 +465,23 @@ def check_latency(result: WakeupResult | str, cycle: CycleConfig, duration_s: fl
         f"p50 {p['p50']:.1f} us, p99 {p['p99']:.1f} us, max {p['max']:.0f} us "
         f"({p['max'] / period_us:.0%} of the period), {result.missed_periods} periods missed"
     )
+    fix = REALTIME_FIX
+    if result.steal_ms > 0:
+        detail += f"; the hypervisor took {result.steal_ms:.0f} ms of CPU time meanwhile"
+        fix = f"{STOLEN_FIX}; {REALTIME_FIX}"
     if result.longest_miss_run > cycle.overrun_limit:
         return _fail(
             "latency",
             f"{detail}, {result.longest_miss_run} in a row: more than cycle.overrun_limit "
             f"{cycle.overrun_limit}, the machine would stop",
-            REALTIME_FIX,
+            fix,
         )
     if p["p99"] > period_us / 2:
-        return _fail("latency", f"{detail}: more than 1 % of the periods missed", REALTIME_FIX)
+        return _fail("latency", f"{detail}: more than 1 % of the periods missed", fix)
     if result.missed_periods:
-        return _warn("latency", f"{detail}: some periods missed", REALTIME_FIX)
+        return _warn("latency", f"{detail}: some periods missed", fix)
     if p["p99"] > period_us * JITTER_WARN_FRACTION:
-        return _warn("latency", f"{detail}: the drives see that SYNC jitter", REALTIME_FIX)
+        return _warn("latency", f"{detail}: the drives see that SYNC jitter", fix)
     return _ok("latency", detail)
 
 

@@ -55,6 +55,20 @@ class WakeupResult:
     """Periods skipped because a wake-up came more than half a period late."""
     longest_miss_run: int
     """Most periods missed in a row (consecutive late wake-ups add up)."""
+    steal_ms: float = 0.0
+    """CPU time a hypervisor gave to other guests while this machine's CPUs wanted it, during
+    the test, all CPUs together [ms]: 0 on bare metal. No setting inside a virtual machine
+    protects a process from it."""
+
+
+def host_steal_s(stat_path: Path = Path("/proc/stat")) -> float:
+    """The steal time of all CPUs since boot (/proc/stat) [s]; 0 where the kernel has none."""
+    try:
+        with stat_path.open() as stat:
+            fields = stat.readline().split()
+    except OSError:
+        return 0.0
+    return int(fields[8]) / os.sysconf("SC_CLK_TCK") if len(fields) > 8 else 0.0
 
 
 def _memory_kib(status_path: Path = Path("/proc/self/status")) -> dict[str, int]:
@@ -114,7 +128,9 @@ def _child(realtime: RealtimeConfig, period_s: float, duration_s: float) -> Wake
     logging.getLogger().addHandler(logging.NullHandler())
     applied = apply_realtime(realtime, thread_name="wake-up test")
     GcPolicy(realtime.gc).set_moving(True)
+    steal_at_start_s = host_steal_s()
     ring, missed, longest_run = measure_wakeups(period_s, realtime.spin_us * 1e-6, duration_s)
+    steal_s = host_steal_s() - steal_at_start_s
     memory_kib = _memory_kib()
     return WakeupResult(
         report=applied.report,
@@ -126,6 +142,7 @@ def _child(realtime: RealtimeConfig, period_s: float, duration_s: float) -> Wake
         percentiles_us=ring.percentiles_us(),
         missed_periods=missed,
         longest_miss_run=longest_run,
+        steal_ms=steal_s * 1000.0,
     )
 
 

@@ -22,6 +22,7 @@ from runtime.curves import load_curve_file
 from runtime.hmi.client import HmiClient
 from runtime.hmi.registers import HmiStatus
 from runtime.status import MachineState
+from runtime.wakeups import host_steal_s
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = load_curve_file(ROOT / "configs" / "curves" / "paper.yaml")
@@ -83,13 +84,6 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def steal_time_s() -> float:
-    """CPU time the hypervisor gave other guests while this host wanted it, all CPUs (s)."""
-    with open("/proc/stat") as stat:
-        fields = stat.readline().split()
-    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
-
-
 class Machine:
     """``softmotion run`` in a subprocess with its own Modbus port."""
 
@@ -100,7 +94,7 @@ class Machine:
         self.config = tmp / "machine.yaml"
         self.config.write_text(yaml.safe_dump(document))
         self.log = tmp / "run.log"
-        self.steal_at_start_s = steal_time_s()
+        self.steal_at_start_s = host_steal_s()
         with self.log.open("w") as log:
             self.process = subprocess.Popen(
                 [str(SOFTMOTION), "run", "--config", str(self.config)],
@@ -125,7 +119,7 @@ class Machine:
         for line in self.log.read_text(errors="replace").splitlines():
             if " WARNING " in line or " ERROR " in line:
                 print(line)
-        print(f"host steal time while the machine ran: {steal_time_s() - self.steal_at_start_s} s")
+        print(f"host steal time while the machine ran: {host_steal_s() - self.steal_at_start_s} s")
 
     def hmi(self, *argv: str) -> subprocess.CompletedProcess[str]:
         """``softmotion hmi --port P ARGV`` as a subprocess."""

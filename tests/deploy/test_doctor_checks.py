@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import resource
 from dataclasses import replace
 from pathlib import Path
@@ -44,7 +45,7 @@ from runtime.doctor import (
     read_eds_problem,
     read_host,
 )
-from runtime.wakeups import WakeupResult
+from runtime.wakeups import WakeupResult, host_steal_s
 
 PINNED = RealtimeConfig(priority=80, cpu=3)
 RT_VERSION = "#1 SMP PREEMPT_RT Debian 6.1.119-1 (2024-11-22)"
@@ -226,6 +227,27 @@ def test_latency_judged_against_the_period_and_the_overrun_limit() -> None:
     assert stalled.verdict is Verdict.FAIL
     assert "4 in a row: more than cycle.overrun_limit 3" in stalled.detail
     assert check_latency(stall, replace(cycle, overrun_limit=25), 10.0).verdict is Verdict.WARN
+
+
+def test_latency_on_a_virtual_machine_names_the_stolen_time_and_its_fix() -> None:
+    cycle = CycleConfig(period_ms=4.0, overrun_limit=3)
+    stolen = check_latency(
+        wakeup_result(missed_periods=5, longest_miss_run=5, steal_ms=310.0), cycle, 10.0
+    )
+    assert stolen.verdict is Verdict.FAIL
+    assert "; the hypervisor took 310 ms of CPU time meanwhile, 5 in a row" in stolen.detail
+    assert stolen.fix.startswith("this is a virtual machine whose host took its CPUs away")
+    assert "PREEMPT_RT" in stolen.fix
+    assert "hypervisor" not in check_latency(wakeup_result(), cycle, 10.0).detail
+
+
+def test_steal_time_is_read_from_proc_stat(tmp_path: Path) -> None:
+    stat = tmp_path / "stat"
+    stat.write_text("cpu  2996330 0 246638 2765946 20853 0 34005 19881 0 0\ncpu0 1 2 3\n")
+    assert host_steal_s(stat) == pytest.approx(19881 / os.sysconf("SC_CLK_TCK"))
+    stat.write_text("cpu  1 2 3 4\n")
+    assert host_steal_s(stat) == 0.0
+    assert host_steal_s(tmp_path / "absent") == 0.0
 
 
 def ip_link(**changes: object) -> str:
