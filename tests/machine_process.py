@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -15,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from sim_machine import sim_document
+from sim_machine import free_port, sim_document
 
 from runtime.commands import CommandCode, CommandResult
 from runtime.curves import load_curve_file
@@ -75,13 +74,6 @@ def connect_when_listening(
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.1)
-
-
-def free_port() -> int:
-    """A TCP port free on the loopback interface just now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 class Machine:

@@ -15,6 +15,7 @@ bench/bench_cycle.py measures the timing.
 from __future__ import annotations
 
 import copy
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -30,10 +31,21 @@ HOST_STALL_LIMITS: dict[str, dict[str, Any]] = {
 }
 
 
-def sim_document(changes: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
-    """configs/sim.yaml as a document, with :data:`HOST_STALL_LIMITS` and then ``changes``
-    applied (each a section's keys to update)."""
+def sim_document(
+    *changes: dict[str, dict[str, Any]], host_stall_limits: bool = True
+) -> dict[str, Any]:
+    """configs/sim.yaml as a document, with :data:`HOST_STALL_LIMITS` (unless
+    ``host_stall_limits`` is off) and then each of ``changes`` applied in order (a section's
+    keys to update)."""
     document = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
-    for section, values in (*HOST_STALL_LIMITS.items(), *(changes or {}).items()):
-        document[section].update(copy.deepcopy(values))
+    for change in (HOST_STALL_LIMITS if host_stall_limits else {}, *changes):
+        for section, values in change.items():
+            document[section].update(copy.deepcopy(values))
     return document
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback interface just now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]

@@ -3,12 +3,12 @@ shipped simulated machine with its own Modbus port and virtual CAN channel, chan
 
 from __future__ import annotations
 
-import socket
 import uuid
 from pathlib import Path
 from typing import Any
 
 import yaml
+from sim_machine import free_port, sim_document
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -32,21 +32,14 @@ DOCTOR_CHECKS = (
 )
 
 
-def free_port() -> int:
-    """A TCP port free on the loopback interface just now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def write_machine(tmp_path: Path, changes: dict[str, dict[str, Any]] | None = None) -> Path:
     """configs/sim.yaml with a fresh virtual channel and Modbus port, sections updated by
     ``changes`` (``{"can": {"interface": "socketcan"}}``); returns the file's path."""
-    document = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
-    document["can"]["channel"] = f"deploy-{uuid.uuid4().hex[:8]}"
-    document["modbus"]["port"] = free_port()
-    for section, values in (changes or {}).items():
-        document[section].update(values)
+    document = sim_document(
+        {"can": {"channel": f"deploy-{uuid.uuid4().hex[:8]}"}, "modbus": {"port": free_port()}},
+        changes or {},
+        host_stall_limits=False,
+    )
     path = tmp_path / "machine.yaml"
     path.write_text(yaml.safe_dump(document))
     return path

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from bus_recorder import BusRecorder
 from machine_harness import PAPER
-from machine_process import connect_when_listening, free_port
+from machine_process import connect_when_listening
 from setpoint_checks import differences, realised_feed
-from sim_machine import sim_document
+from sim_machine import free_port, sim_document
 
 from drives.sim.quirks import DriveQuirks
 from runtime.commands import CommandCode, CommandOrigin
@@ -40,8 +40,11 @@ pytestmark = pytest.mark.slow
 
 
 def local_config() -> MachineConfig:
-    config = parse_config(sim_document({"can": {"channel": f"test-{uuid.uuid4().hex[:8]}"}}))
-    return replace(config, modbus=replace(config.modbus, enabled=False))
+    return parse_config(
+        sim_document(
+            {"can": {"channel": f"test-{uuid.uuid4().hex[:8]}"}, "modbus": {"enabled": False}}
+        )
+    )
 
 
 @pytest.fixture

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import math
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -62,6 +61,7 @@ import yaml
 from canlisten import CanListener, RecordedFrame
 from conftest import DIAGNOSTIC_LOGS, VCAN_CHANNEL, running_in_vcan_vm
 from machine_process import connect_hmi
+from sim_machine import free_port
 
 from drives.boot import BootPhase
 from planner.nurbs import NurbsCurve
@@ -104,12 +104,6 @@ S = MachineState
 #: Controlwords a CSP axis legitimately sends (CiA 402: disable voltage, quick stop, shutdown,
 #: switch on / disable operation, enable operation, fault reset).
 CONTROLWORDS = {0x00, 0x02, 0x06, 0x07, 0x0F, 0x80}
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 class VcanMachine:
