@@ -328,7 +328,8 @@ def print_part_one(
     print(
         f"override changes: {report.get('override_changes', 0)}; periods from the change to its "
         f"first re-planned setpoint: median {np.median(latencies):.0f}, "
-        f"p99 {np.percentile(latencies, 99):.0f}, max {latencies.max()} (target <= 2); "
+        f"p90 {np.percentile(latencies, 90):.0f}, p99 {np.percentile(latencies, 99):.0f}, "
+        f"max {latencies.max()}, {np.mean(latencies <= 2):.0%} within 2 (target <= 2); "
         "hold: braking starts in the period the command is applied (0)"
     )
     latency_ms = clients["latency_s"] * 1000

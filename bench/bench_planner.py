@@ -39,7 +39,7 @@ import feed_bound as fb  # noqa: E402
 import setpoint_checks as sc  # noqa: E402
 
 from planner.nurbs import NurbsCurve  # noqa: E402
-from planner.stream import Path, stream_setpoints  # noqa: E402
+from planner.stream import Path, plan_setpoints, stream_setpoints  # noqa: E402
 from planner.types import Limits, SetpointBlock  # noqa: E402
 
 try:
@@ -141,11 +141,10 @@ def replan_first_block_s(curve: NurbsCurve, ratio: float = 1.2) -> float:
     """CPU time from a re-plan call at a mid-path state (override) to its first block."""
     lim = limits(1e-3)
     path = Path(curve, lim, T)
-    blocks = stream_setpoints(path, lim, T, block_periods=64)
-    block = next(blocks)
-    while block.accel_mm_s2[-1] == 0.0 and not block.last:
-        block = next(blocks)
-    state = block.state(len(block) // 2)
+    plan = plan_setpoints(path, lim, T)
+    # Mid-path, where the motion accelerates (a re-plan never starts on a braking row).
+    row = len(plan) // 2 + int(np.argmax(plan.accel_mm_s2[len(plan) // 2 :] > 0.0))
+    state = plan.state(row)
     best = float("inf")
     for _ in range(REPEATS):
         started = time.process_time()

@@ -43,6 +43,7 @@ from planner.profiles.scurve import (
     settled_speed,
 )
 from planner.refine import refine
+from planner.warmstart import RefinedPoints
 from planner.window import (
     MIN_POINT_GAP_MM,
     PlanLimits,
@@ -104,9 +105,14 @@ def plan_segments(
     a_start: float,
     *,
     stop: bool,
+    refined: RefinedPoints | None = None,
+    warm_start: bool = False,
 ) -> Iterator[list[SegmentPlan]]:
     """Released stretches of the motion from the start state to rest, in order, in the groups
     that each window releases.
+
+    Each refined window is remembered in ``refined`` when given; with ``warm_start`` its
+    points seed the windows first (:mod:`planner.warmstart`).
 
     The first stretch brings the start acceleration to zero (jerk-limited); then windows of the
     path are planned and released. With ``stop`` the motion comes to rest as soon as the limits
@@ -149,8 +155,13 @@ def plan_segments(
         else:
             cap[-1] = 0.0
         w = Window(pts, cap, fv)
+        initial_s = frozenset(w.s)
+        if refined is not None and warm_start:
+            refined.seed(w, lim.vmax_mm_s)
         checker = Checker(s_env, v_env, lim)
         v_plan = refine(w, checker, v, lim)
+        if refined is not None:
+            refined.remember(w, initial_s, lim.vmax_mm_s)
         if final:
             if v_plan[-1] > 1e-9:
                 # Too fast to stop where planned (start beyond the constraints): stop later.

@@ -6,8 +6,9 @@ override, resume), controlled stop on the path (feed hold), exact landing on the
 
 A :class:`Path` holds what is shared by every plan of a curve: the arc-length table and the
 feed-limit envelope, both built lazily per chunk of knot spans as the windows reach them, so
-preparing a Path is cheap and the first block comes as fast on a long curve as on a short one.
-:func:`stream_setpoints` plans a window ahead
+preparing a Path is cheap and the first block comes as fast on a long curve as on a short one;
+and the points refinement added, which re-plans from a motion state start from
+(:mod:`planner.warmstart`). :func:`stream_setpoints` plans a window ahead
 (:mod:`planner.lookahead`), samples the released closed-form motion every period (vectorised,
 no loop per period) and turns arc length into curve parameters (:mod:`planner.interpolator`).
 
@@ -21,7 +22,8 @@ profile, feed <= vmax (or braking down to it); the final row of a stream that re
 end is exactly C(last knot), at rest. A stop at a sharp corner (zero feed limit) dwells until a
 period boundary, so that the corner itself is a setpoint.
 
-Not modelled: reverse motion along the path; per-axis jerk.
+Not modelled: reverse motion along the path; per-axis jerk; a start that brakes
+(:func:`replannable`).
 """
 
 from __future__ import annotations
@@ -40,9 +42,12 @@ from planner.lookahead import PlanLimits, plan_segments
 from planner.nurbs import NurbsCurve
 from planner.profiles import Phase, PhaseTrain
 from planner.types import Limits, MotionState, SetpointBlock
+from planner.warmstart import RefinedPoints
 
 #: Relative tolerance when deciding that a time falls on a period boundary.
 _TIME_EPS = 1e-9
+#: A start decelerating by less than this is not braking (round-off at the end of a braking).
+BRAKING_TOLERANCE_MM_S2 = 1e-6
 #: Largest batch of rows whose parameters and positions are computed together.
 BATCH_ROWS = 1024
 
@@ -73,6 +78,8 @@ class Path:
         self.period_s = float(period_s)
         self.arc = ArcLengthTable(curve)
         self.envelope = FeedEnvelope(curve, self.arc, limits, self.period_s)
+        self.refined = RefinedPoints()
+        """What refinement found in earlier plans: re-plans start from it."""
 
     @property
     def length_mm(self) -> float:
@@ -115,8 +122,9 @@ def stream_setpoints(
     :param path: the prepared curve.
     :param limits: limits of this plan (a feed override scales vmax).
     :param period_s: interpolation period T (the path's).
-    :param start: motion state to continue from; the first row is then one period after it.
-        Default: at rest at s = 0, and the first row is that start.
+    :param start: motion state to continue from, one that does not brake
+        (:func:`replannable`); the first row is then one period after it. Default: at rest at
+        s = 0, and the first row is that start.
     :param stop: decelerate to rest as soon as the jerk and acceleration limits allow.
     :param lookahead: False gives the paper's comparison case, eq. (4) alone each period.
     :param update: parameter update, ``"corrected"`` or ``"taylor2"`` (eq. (2)).
@@ -132,6 +140,12 @@ def stream_setpoints(
         raise ValueError(f"start.s_mm: got {state.s_mm!r}, must be within [0, {path.length_mm}]")
     if not (math.isfinite(state.v_mm_s) and state.v_mm_s >= 0.0 and math.isfinite(state.a_mm_s2)):
         raise ValueError(f"start: got {state!r}, feed must be >= 0 and both finite")
+    if not replannable(state):
+        raise ValueError(
+            f"start.a_mm_s2: got {state.a_mm_s2!r}, must be >= 0: a plan first eases its start "
+            "acceleration off, which from a braking state would give up braking the curve ahead "
+            "may need; re-plan from a state that does not brake"
+        )
     interp = Interpolator(path.curve, path.arc, update, state.s_mm)
     rows = (
         _planned_rows(path, limits, state, stop=stop, fresh=fresh, min_rows=block_periods)
@@ -139,6 +153,18 @@ def stream_setpoints(
         else _adaptive_rows(path, limits, state, stop=stop, fresh=fresh)
     )
     yield from _blocks(path, interp, rows, block_periods)
+
+
+def replannable(state: MotionState) -> bool:
+    """Whether a plan may start from ``state``: one that does not brake.
+
+    A plan from a motion state first brings its acceleration to zero (jerk-limited), then plans
+    the windows ahead. From a braking state that easing-off travels faster than the braking it
+    interrupts, which was there for a reason the start state does not carry (measured on curves
+    with cusps: the chord error 25-120 times over). A caller with an earlier plan follows it until
+    its acceleration is back to >= 0 and re-plans there.
+    """
+    return state.a_mm_s2 >= -BRAKING_TOLERANCE_MM_S2
 
 
 def plan_setpoints(path: Path, limits: Limits, period_s: float, **kwargs) -> SetpointBlock:
@@ -169,6 +195,8 @@ def _planned_rows(
         state.v_mm_s,
         state.a_mm_s2,
         stop=stop,
+        refined=path.refined,
+        warm_start=not fresh,
     )
     t, s, v, a = 0.0, state.s_mm, state.v_mm_s, state.a_mm_s2
     k_next = k_end = 0 if fresh else 1

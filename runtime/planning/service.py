@@ -12,8 +12,11 @@ returns, so the process loop stays responsive to the cycle's requests:
   other ring from the row after it, and offered; the cycle accepts it if it has not reached
   that row, else it is made again further ahead. How far ahead is how many periods the last
   splice took to plan (:attr:`PlannerService.splice_lead_periods` at least): re-planning costs
-  from 2 ms where the window ahead is easy to 12 ms where it holds a sharp stretch, and a try
-  that comes too late costs a whole re-plan more than one started a little further ahead;
+  from 2 ms where the window ahead is easy to 5 ms where it holds a sharp stretch (the path's
+  earlier plans seed it, :mod:`planner.warmstart`), and a try that comes too late costs a whole
+  re-plan more than one started a little further ahead. A splice never starts on a row that
+  brakes (:func:`planner.stream.replannable`): the old rows are followed to the end of their
+  braking, which the curve ahead needs;
 - otherwise the next block of the job, up to :attr:`PlannerService.buffer_high_periods` rows
   ahead of the cycle.
 
@@ -37,7 +40,7 @@ import numpy as np
 from planner.braking import BrakingProfile
 from planner.errors import PlannerError
 from planner.nurbs import NurbsCurve
-from planner.stream import Path, stream_setpoints
+from planner.stream import BRAKING_TOLERANCE_MM_S2, Path, stream_setpoints
 from planner.types import Limits, MotionState, SetpointBlock
 from runtime.config import MachineConfig
 from runtime.curves import limits_for_curve, planner_limits
@@ -341,8 +344,8 @@ class PlannerService:
         """Re-plan from a row ahead of the cycle with the new override, into the other ring."""
         ring = self._shared.rings[job.ring]
         cycle = self._shared.cycle_reports.latest()
-        row = cycle.next_row + job.splice_lead
         last_planned = ring.write_count - 1
+        row = self._first_unbraked_row(ring, cycle.next_row + job.splice_lead, last_planned)
         if row > last_planned or self._row_ends_segment(ring, row):
             if job.done and row > last_planned:
                 job.splice_override = None  # the rest is the braking to the end: nothing to re-plan
@@ -385,6 +388,15 @@ class PlannerService:
         else:
             self._offer(job, other_index, row + 1)
         return True
+
+    @staticmethod
+    def _first_unbraked_row(ring: SetpointRing, first: int, last: int) -> int:
+        """The first row from ``first`` on that a re-plan may start from (one that does not
+        brake: :func:`planner.stream.replannable`), or ``last + 1`` while there is none yet."""
+        row = first
+        while row <= last and ring.accel_mm_s2[ring.slot(row)] < -BRAKING_TOLERANCE_MM_S2:
+            row += 1
+        return row
 
     def _try_further_ahead(self, job: _Job) -> None:
         """The cycle got to the splice's first row first: plan it again beyond what this try

@@ -90,7 +90,7 @@ def test_blocks_stream_and_concatenate(path):
     assert whole.t_s[0] == 0.0 and whole.s_mm[0] == 0.0
 
 
-@pytest.mark.parametrize(("k", "ratio"), [(60, 0.5), (150, 0.3), (250, 1.5), (300, 1.0)])
+@pytest.mark.parametrize(("k", "ratio"), [(60, 0.5), (150, 0.3), (230, 1.5), (300, 1.0)])
 def test_replan_from_a_row_with_an_override_is_smooth(curve, path, k, ratio):
     first = plan_setpoints(path, LIMITS, T)
     limits = LIMITS.with_feed_override(ratio)
@@ -105,6 +105,13 @@ def test_replan_from_a_row_with_an_override_is_smooth(curve, path, k, ratio):
     feed = sc.realised_feed(second.position_mm, T)
     settled = feed[int(0.2 / T) :]  # after the braking time from vmax
     assert settled.max() <= max(limits.vmax_mm_s, 0.0) * 1.001
+
+
+def test_a_plan_from_a_braking_state_is_refused_by_name(path):
+    first = plan_setpoints(path, LIMITS, T)
+    braking = first.state(int(np.argmax(first.accel_mm_s2 < -100.0)))
+    with pytest.raises(ValueError, match=r"start\.a_mm_s2: got -\d.*must be >= 0"):
+        next(stream_setpoints(path, LIMITS, T, start=braking))
 
 
 def test_hold_stops_on_the_path_within_the_braking_distance(curve, path):

@@ -200,3 +200,26 @@ def test_an_override_changes_the_setpoint_two_periods_after_the_command(h: Harne
     assert mine[:2] == theirs[:2]
     assert mine[2].feed_mm_s < theirs[2].feed_mm_s
     assert h.status.stats.override_latency_periods == 2
+
+
+def test_an_override_given_while_the_plan_brakes_is_spliced_where_the_braking_ends(
+    h: Harness,
+) -> None:
+    """A re-plan first eases its start acceleration off: from a braking row it would give up
+    the braking the sharp stretch ahead needs, so the old rows are followed to its end."""
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: s.phase is MotionPhase.PROGRAM and h.setpoints[-1].accel_mm_s2 < -300.0, 2000)
+    braking_from = len(h.setpoints)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=150.0)
+    h.until(lambda s: s.stats.overrides_applied == 1, 200)
+    first_spliced = len(h.setpoints) - 1
+    latency = h.status.stats.override_latency_periods
+    # The splice's rows begin after the first row that does not brake; every row before it since
+    # the command brakes, as the old plan does.
+    assert latency > 2
+    splice_state = h.setpoints[first_spliced - 1]
+    assert splice_state.accel_mm_s2 >= 0.0
+    assert all(sp.accel_mm_s2 < 0.0 for sp in h.setpoints[braking_from : first_spliced - 1])
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array(), VMAX * 1.5)
+    check_on_curve_and_end(h, h.program_under_test)
