@@ -42,6 +42,7 @@ from planner.profiles.scurve import (
     settle_phases,
     settled_speed,
 )
+from planner.profiles.transition import transition_phases
 from planner.refine import refine
 from planner.warmstart import RefinedPoints
 from planner.window import (
@@ -105,27 +106,35 @@ def plan_segments(
     a_start: float,
     *,
     stop: bool,
+    braking_end_mm_s: float | None = None,
     refined: RefinedPoints | None = None,
     warm_start: bool = False,
 ) -> Iterator[list[SegmentPlan]]:
     """Released stretches of the motion from the start state to rest, in order, in the groups
     that each window releases.
 
+    The first stretch brings the start acceleration to zero (jerk-limited): at once, or for a
+    start that brakes with ``braking_end_mm_s`` given, as quickly as the limits allow at the
+    lower of that feed and vmax. Then windows of the path are planned and released. With
+    ``stop`` the motion comes to rest as soon as the limits allow (the jerk-limited braking
+    distance), or at the curve end if that comes first.
+
     Each refined window is remembered in ``refined`` when given; with ``warm_start`` its
     points seed the windows first (:mod:`planner.warmstart`).
-
-    The first stretch brings the start acceleration to zero (jerk-limited); then windows of the
-    path are planned and released. With ``stop`` the motion comes to rest as soon as the limits
-    allow (the jerk-limited braking distance), or at the curve end if that comes first.
     """
     A, J = lim.A, lim.J
-    settle = settle_phases(a_start, J)
     s, v = s_start, v_start
-    if settle:
+    first, v_first = settle_phases(a_start, J), settled_speed(v, a_start, J)
+    if a_start < 0.0 and braking_end_mm_s is not None:
+        # Easing off at once ends the braking at the highest feed any plan from this state can
+        # come to zero acceleration at: the braking end is never above it.
+        v_first = min(max(braking_end_mm_s, 0.0), lim.vmax_mm_s, v_first)
+        first = transition_phases(v, a_start, v_first, 0.0, A, J)
+    if first:
         train = PhaseTrain(0.0, s, v, a_start)
-        train.extend(settle)
-        s, v = arc.extent_mm(train.s_mm), settled_speed(v_start, a_start, J)
-        yield [SegmentPlan(tuple(settle), s, v)]
+        train.extend(first)
+        s, v = arc.extent_mm(train.s_mm), v_first
+        yield [SegmentPlan(tuple(first), s, v)]
     window_mm = max(
         WINDOW_BRAKING_DISTANCES * braking_distance_mm(lim.vmax_mm_s, A, J), MIN_WINDOW_MM
     )

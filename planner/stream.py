@@ -22,14 +22,14 @@ profile, feed <= vmax (or braking down to it); the final row of a stream that re
 end is exactly C(last knot), at rest. A stop at a sharp corner (zero feed limit) dwells until a
 period boundary, so that the corner itself is a setpoint.
 
-Not modelled: reverse motion along the path; per-axis jerk; a start that brakes
-(:func:`replannable`).
+Not modelled: reverse motion along the path; per-axis jerk; a start that brakes without the
+earlier plan's braking end (:func:`braking_end_mm_s`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -116,15 +116,19 @@ def stream_setpoints(
     lookahead: bool = True,
     update: str = "corrected",
     block_periods: int = 256,
+    braking_end_mm_s: float | None = None,
 ) -> Iterator[SetpointBlock]:
     """Setpoints from ``start`` to the curve end (or to rest with ``stop``), block by block.
 
     :param path: the prepared curve.
     :param limits: limits of this plan (a feed override scales vmax).
     :param period_s: interpolation period T (the path's).
-    :param start: motion state to continue from, one that does not brake
-        (:func:`replannable`); the first row is then one period after it. Default: at rest at
-        s = 0, and the first row is that start.
+    :param start: motion state to continue from; the first row is then one period after it.
+        Default: at rest at s = 0, and the first row is that start.
+    :param braking_end_mm_s: for a start that brakes (required then): the feed the earlier
+        plan's braking comes to (:func:`braking_end_mm_s`); the plan brakes to it, or to vmax if
+        lower, as quickly as the limits allow, and plans on from there. A start that does not
+        brake eases its acceleration off at once.
     :param stop: decelerate to rest as soon as the jerk and acceleration limits allow.
     :param lookahead: False gives the paper's comparison case, eq. (4) alone each period.
     :param update: parameter update, ``"corrected"`` or ``"taylor2"`` (eq. (2)).
@@ -140,31 +144,52 @@ def stream_setpoints(
         raise ValueError(f"start.s_mm: got {state.s_mm!r}, must be within [0, {path.length_mm}]")
     if not (math.isfinite(state.v_mm_s) and state.v_mm_s >= 0.0 and math.isfinite(state.a_mm_s2)):
         raise ValueError(f"start: got {state!r}, feed must be >= 0 and both finite")
-    if not replannable(state):
+    if state.a_mm_s2 < -BRAKING_TOLERANCE_MM_S2 and braking_end_mm_s is None:
         raise ValueError(
-            f"start.a_mm_s2: got {state.a_mm_s2!r}, must be >= 0: a plan first eases its start "
-            "acceleration off, which from a braking state would give up braking the curve ahead "
-            "may need; re-plan from a state that does not brake"
+            f"start.a_mm_s2: got {state.a_mm_s2!r}, a start that brakes needs braking_end_mm_s "
+            "(the feed its braking comes to): easing the braking off at once would give up "
+            "braking the curve ahead may need"
         )
+    if braking_end_mm_s is not None and not (
+        math.isfinite(braking_end_mm_s) and braking_end_mm_s >= 0.0
+    ):
+        raise ValueError(f"braking_end_mm_s: got {braking_end_mm_s!r}, must be finite and >= 0")
     interp = Interpolator(path.curve, path.arc, update, state.s_mm)
     rows = (
-        _planned_rows(path, limits, state, stop=stop, fresh=fresh, min_rows=block_periods)
+        _planned_rows(
+            path,
+            limits,
+            state,
+            stop=stop,
+            fresh=fresh,
+            min_rows=block_periods,
+            braking_end_mm_s=braking_end_mm_s,
+        )
         if lookahead
         else _adaptive_rows(path, limits, state, stop=stop, fresh=fresh)
     )
     yield from _blocks(path, interp, rows, block_periods)
 
 
-def replannable(state: MotionState) -> bool:
-    """Whether a plan may start from ``state``: one that does not brake.
+def braking_end_mm_s(
+    feed_mm_s: Sequence[float], accel_mm_s2: Sequence[float], period_s: float
+) -> float | None:
+    """The feed an earlier plan's braking comes to, from its rows starting at a braking one:
+    the lowest feed up to the first row that does not brake, less what the last braking row's
+    deceleration may take off before that row (the rows sample the motion), or None while every
+    row given brakes.
 
-    A plan from a motion state first brings its acceleration to zero (jerk-limited), then plans
-    the windows ahead. From a braking state that easing-off travels faster than the braking it
-    interrupts, which was there for a reason the start state does not carry (measured on curves
-    with cusps: the chord error 25-120 times over). A caller with an earlier plan follows it until
-    its acceleration is back to >= 0 and re-plans there.
+    For a re-plan from a braking row (``stream_setpoints(start=..., braking_end_mm_s=...)``):
+    braking as hard as the limits allow to a feed the earlier plan comes down to anyway is never
+    faster, at any point of the path, than that plan's braking.
     """
-    return state.a_mm_s2 >= -BRAKING_TOLERANCE_MM_S2
+    for k, accel in enumerate(accel_mm_s2):
+        if accel >= -BRAKING_TOLERANCE_MM_S2:
+            if k == 0:
+                return float(feed_mm_s[0])
+            lowest = min(feed_mm_s[: k + 1])
+            return max(0.0, float(lowest) + float(accel_mm_s2[k - 1]) * period_s)
+    return None
 
 
 def plan_setpoints(path: Path, limits: Limits, period_s: float, **kwargs) -> SetpointBlock:
@@ -176,7 +201,14 @@ _Rows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def _planned_rows(
-    path: Path, limits: Limits, state: MotionState, *, stop: bool, fresh: bool, min_rows: int
+    path: Path,
+    limits: Limits,
+    state: MotionState,
+    *,
+    stop: bool,
+    fresh: bool,
+    min_rows: int,
+    braking_end_mm_s: float | None,
 ) -> Iterator[tuple[_Rows, bool]]:
     """(t, s, v, a, j) rows of the look-ahead plan, at least ``min_rows`` per batch until the
     last, and whether the batch ends the motion."""
@@ -195,6 +227,7 @@ def _planned_rows(
         state.v_mm_s,
         state.a_mm_s2,
         stop=stop,
+        braking_end_mm_s=braking_end_mm_s,
         refined=path.refined,
         warm_start=not fresh,
     )

@@ -14,9 +14,10 @@ returns, so the process loop stays responsive to the cycle's requests:
   splice took to plan (:attr:`PlannerService.splice_lead_periods` at least): re-planning costs
   from 2 ms where the window ahead is easy to 5 ms where it holds a sharp stretch (the path's
   earlier plans seed it, :mod:`planner.warmstart`), and a try that comes too late costs a whole
-  re-plan more than one started a little further ahead. A splice never starts on a row that
-  brakes (:func:`planner.stream.replannable`): the old rows are followed to the end of their
-  braking, which the curve ahead needs;
+  re-plan more than one started a little further ahead. A splice from a row that brakes
+  brakes at once, as hard as the limits allow, to the feed the old rows' braking comes to
+  (:func:`planner.stream.braking_end_mm_s`): never faster on the path than that braking, which
+  the curve ahead needs;
 - otherwise the next block of the job, up to :attr:`PlannerService.buffer_high_periods` rows
   ahead of the cycle.
 
@@ -40,7 +41,7 @@ import numpy as np
 from planner.braking import BrakingProfile
 from planner.errors import PlannerError
 from planner.nurbs import NurbsCurve
-from planner.stream import BRAKING_TOLERANCE_MM_S2, Path, stream_setpoints
+from planner.stream import Path, braking_end_mm_s, stream_setpoints
 from planner.types import Limits, MotionState, SetpointBlock
 from runtime.config import MachineConfig
 from runtime.curves import limits_for_curve, planner_limits
@@ -87,6 +88,8 @@ class _Job:
     splice_lead: int = 0
     pending_state: tuple[int, MotionState] | None = None
     """Where the next stream of the job starts (segment, state) when none is open."""
+    braking_end_mm_s: float | None = None
+    """For a splice from a braking row: the feed that braking comes to (its first stream's)."""
     override_percent: float = 100.0
     candidate: _Job | None = None
     """A splice offered to the cycle: the re-planned rest of the job, in the other ring."""
@@ -304,6 +307,7 @@ class PlannerService:
             job.segment = segment
             job.blocks = self._stream(job, segment, state)
             job.pending_state = None
+            job.braking_end_mm_s = None
         block = next(job.blocks, None)
         if block is None:
             _segment_finished(job)
@@ -316,6 +320,7 @@ class PlannerService:
             job.limits[segment],
             self._period_s,
             start=state,
+            braking_end_mm_s=job.braking_end_mm_s,
             lookahead=self._lookahead,
             update=self._update,
             block_periods=self.block_periods,
@@ -344,8 +349,8 @@ class PlannerService:
         """Re-plan from a row ahead of the cycle with the new override, into the other ring."""
         ring = self._shared.rings[job.ring]
         cycle = self._shared.cycle_reports.latest()
+        row = cycle.next_row + job.splice_lead
         last_planned = ring.write_count - 1
-        row = self._first_unbraked_row(ring, cycle.next_row + job.splice_lead, last_planned)
         if row > last_planned or self._row_ends_segment(ring, row):
             if job.done and row > last_planned:
                 job.splice_override = None  # the rest is the braking to the end: nothing to re-plan
@@ -358,6 +363,11 @@ class PlannerService:
         state = MotionState(
             float(ring.s_mm[slot]), float(ring.feed_mm_s[slot]), float(ring.accel_mm_s2[slot])
         )
+        braking_end = None
+        if state.a_mm_s2 < 0.0:
+            braking_end = self._braking_end_mm_s(ring, row, last_planned)
+            if braking_end is None:
+                return self._extend_for_splice(job, ring)  # its braking's end is not planned yet
         limits = tuple(self._limits_for(path, override) for path in job.paths)
         other_index = 1 - job.ring
         other = self._shared.rings[other_index]
@@ -372,6 +382,7 @@ class PlannerService:
             override_percent=override,
         )
         spliced.pending_state = (segment, state)
+        spliced.braking_end_mm_s = braking_end
         # Offered once its rows cover a stop from where it begins, and the time to plan more:
         # the cycle takes them from two periods on, and calls the planner behind when the rows
         # ahead no longer cover its braking.
@@ -389,14 +400,15 @@ class PlannerService:
             self._offer(job, other_index, row + 1)
         return True
 
-    @staticmethod
-    def _first_unbraked_row(ring: SetpointRing, first: int, last: int) -> int:
-        """The first row from ``first`` on that a re-plan may start from (one that does not
-        brake: :func:`planner.stream.replannable`), or ``last + 1`` while there is none yet."""
-        row = first
-        while row <= last and ring.accel_mm_s2[ring.slot(row)] < -BRAKING_TOLERANCE_MM_S2:
-            row += 1
-        return row
+    def _braking_end_mm_s(self, ring: SetpointRing, row: int, last: int) -> float | None:
+        """The feed the braking through ``row`` comes to (:func:`planner.stream.braking_end_mm_s`),
+        or None while its end is not planned."""
+        rows = []
+        for k in range(row, last + 1):
+            rows.append(ring.slot(k))
+            if ring.accel_mm_s2[rows[-1]] >= 0.0:
+                break
+        return braking_end_mm_s(ring.feed_mm_s[rows], ring.accel_mm_s2[rows], self._period_s)
 
     def _try_further_ahead(self, job: _Job) -> None:
         """The cycle got to the splice's first row first: plan it again beyond what this try

@@ -14,12 +14,12 @@ from pathlib import Path as FilePath
 
 import curve_families as cf
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from test_properties import assert_every_limit_holds
+from test_properties import assert_every_limit_holds, assert_joined_motion_keeps_every_limit
 
 from planner.nurbs import NurbsCurve
-from planner.stream import Path, plan_setpoints, stream_setpoints
+from planner.stream import Path, braking_end_mm_s, plan_setpoints, stream_setpoints
 from planner.types import Limits
 
 T = 0.004
@@ -57,6 +57,33 @@ def family_settings(max_examples: int) -> settings:
 )
 def test_curve_families_keep_every_limit(curve, delta, vmax):
     assert_every_limit_holds(curve, delta, vmax)
+
+
+@family_settings(60)
+@given(
+    curve=family_curves(),
+    delta=st.sampled_from([1e-4, 1e-3, 1e-2]),
+    where=st.floats(0.0, 1.0),
+    braking=st.booleans(),
+    ratio=st.sampled_from([0.3, 1.0, 1.5]),
+)
+def test_replans_keep_every_limit(curve, delta, where, braking, ratio):
+    # A re-plan of a path starts warm (planner.warmstart); from a row braking towards a cusp or
+    # a tight loop, easing off first overshot the chord error 25-120x.
+    limits = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=delta)
+    path = Path(curve, limits, T)
+    first = plan_setpoints(path, limits, T)
+    rows = np.flatnonzero(first.accel_mm_s2 < 0.0) if braking else np.arange(len(first))
+    assume(len(rows) > 0)
+    row = int(rows[int(where * (len(rows) - 1))])
+    replan = plan_setpoints(
+        path,
+        limits.with_feed_override(ratio),
+        T,
+        start=first.state(row),
+        braking_end_mm_s=braking_end_mm_s(first.feed_mm_s[row:], first.accel_mm_s2[row:], T),
+    )
+    assert_joined_motion_keeps_every_limit(curve, first, row, replan, limits)
 
 
 def test_a_near_cusp_is_passed_at_its_own_radius():

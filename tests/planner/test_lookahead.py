@@ -107,10 +107,10 @@ def test_replan_from_a_row_with_an_override_is_smooth(curve, path, k, ratio):
     assert settled.max() <= max(limits.vmax_mm_s, 0.0) * 1.001
 
 
-def test_a_plan_from_a_braking_state_is_refused_by_name(path):
+def test_a_plan_from_a_braking_state_without_its_braking_end_is_refused_by_name(path):
     first = plan_setpoints(path, LIMITS, T)
     braking = first.state(int(np.argmax(first.accel_mm_s2 < -100.0)))
-    with pytest.raises(ValueError, match=r"start\.a_mm_s2: got -\d.*must be >= 0"):
+    with pytest.raises(ValueError, match=r"start\.a_mm_s2: got -\d.*needs braking_end_mm_s"):
         next(stream_setpoints(path, LIMITS, T, start=braking))
 
 

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from planner.nurbs import NurbsCurve
 from planner.stream import Path, plan_setpoints
-from planner.types import Limits
+from planner.types import Limits, SetpointBlock
 
 T = 0.004
 
@@ -67,3 +67,17 @@ def assert_every_limit_holds(curve: NurbsCurve, delta: float, vmax: float) -> No
     assert fig.max_chord_error_mm <= delta * 1.01
     assert fig.end_error_mm <= 1e-6
     assert block.last and block.feed_mm_s[-1] == 0.0
+
+
+def assert_joined_motion_keeps_every_limit(
+    curve: NurbsCurve, first: SetpointBlock, row: int, replan: SetpointBlock, limits: Limits
+) -> None:
+    """Every limit on ``first``'s rows up to ``row`` followed by ``replan``'s rows."""
+    u = np.concatenate([first.u[: row + 1], replan.u])
+    position = np.vstack([first.position_mm[: row + 1], replan.position_mm])
+    fig = sc.measure(curve, u, position, T)
+    assert np.isfinite(position).all()
+    assert fig.max_accel_mm_s2 <= limits.amax_mm_s2 * 1.02
+    assert fig.max_jerk_mm_s3 <= limits.jmax_mm_s3 * 1.05
+    assert fig.max_chord_error_mm <= limits.chord_error_mm * 1.01
+    assert fig.end_error_mm <= 1e-6

@@ -5,13 +5,9 @@ from __future__ import annotations
 import curve_families as cf
 import numpy as np
 import pytest
-import setpoint_checks as sc
-from hypothesis import given
-from hypothesis import strategies as st
-from test_families import family_curves, family_settings
+from test_properties import assert_joined_motion_keeps_every_limit
 
 import planner.refine
-from planner.nurbs import NurbsCurve
 from planner.stream import Path, plan_setpoints
 from planner.types import Limits, SetpointBlock
 from planner.warmstart import RefinedPoints
@@ -39,19 +35,6 @@ def replan_with_checks_counted(
     replan = plan_setpoints(path, LIMITS.with_feed_override(ratio), T, start=first.state(row))
     monkeypatch.undo()
     return replan, rounds
-
-
-def assert_joined_motion_keeps_every_limit(
-    curve: NurbsCurve, first: SetpointBlock, row: int, replan: SetpointBlock, limits: Limits
-) -> None:
-    u = np.concatenate([first.u[: row + 1], replan.u])
-    position = np.vstack([first.position_mm[: row + 1], replan.position_mm])
-    fig = sc.measure(curve, u, position, T)
-    assert np.isfinite(position).all()
-    assert fig.max_accel_mm_s2 <= limits.amax_mm_s2 * 1.02
-    assert fig.max_jerk_mm_s3 <= limits.jmax_mm_s3 * 1.05
-    assert fig.max_chord_error_mm <= limits.chord_error_mm * 1.01
-    assert fig.end_error_mm <= 1e-6
 
 
 def test_a_replan_starts_from_what_the_first_plan_refined(monkeypatch):
@@ -92,22 +75,3 @@ def test_points_at_the_vmax_of_either_plan_are_not_offered():
         seeded = Window([0.0, 10.0], [0.0, 0.0], [False])
         memory.seed(seeded, vmax)
         assert seeded.s[1:-1] == kept
-
-
-@family_settings(40)
-@given(
-    curve=family_curves(),
-    delta=st.sampled_from([1e-4, 1e-3, 1e-2]),
-    where=st.floats(0.05, 0.9),
-    ratio=st.sampled_from([0.3, 0.8, 1.5]),
-)
-def test_warm_replans_of_the_curve_families_keep_every_limit(curve, delta, where, ratio):
-    limits = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=delta)
-    path = Path(curve, limits, T)
-    first = plan_setpoints(path, limits, T)
-    row = int(where * (len(first) - 1))
-    while first.accel_mm_s2[row] < 0.0:
-        row += 1  # a re-plan starts where the motion does not brake, as the runtime's splices
-    replan = plan_setpoints(path, limits.with_feed_override(ratio), T, start=first.state(row))
-    assert_joined_motion_keeps_every_limit(curve, first, row, replan, limits)
-    assert replan.feed_mm_s[-1] == 0.0

@@ -202,24 +202,38 @@ def test_an_override_changes_the_setpoint_two_periods_after_the_command(h: Harne
     assert h.status.stats.override_latency_periods == 2
 
 
-def test_an_override_given_while_the_plan_brakes_is_spliced_where_the_braking_ends(
+def test_an_override_given_while_the_plan_brakes_brakes_at_once_never_faster_on_the_path(
     h: Harness,
 ) -> None:
-    """A re-plan first eases its start acceleration off: from a braking row it would give up
-    the braking the sharp stretch ahead needs, so the old rows are followed to its end."""
-    assert h.command(CommandCode.START) is CommandResult.DONE
-    h.until(lambda s: s.phase is MotionPhase.PROGRAM and h.setpoints[-1].accel_mm_s2 < -300.0, 2000)
-    braking_from = len(h.setpoints)
+    """A re-plan from a braking row brakes as hard as the limits allow to the feed the old
+    braking comes to: the setpoint changes two periods after the command (as anywhere else),
+    and no setpoint of that braking is faster than the old plan at the same point of the path
+    (from there on the look-ahead plans against the feed limit, as from any other start)."""
+    reference = Harness(h.programs.directory.parent / "reference")
+    reference.program_under_test = reference.standby_with_program()
+    for harness in (h, reference):
+        assert harness.command(CommandCode.START) is CommandResult.DONE
+        harness.until(
+            lambda s, harness=harness: (
+                s.phase is MotionPhase.PROGRAM and harness.setpoints[-1].accel_mm_s2 < -300.0
+            ),
+            2000,
+        )
+    assert reference.setpoints[-1] == h.setpoints[-1]
     h.command(CommandCode.SET_OVERRIDE, override_percent=150.0)
     h.until(lambda s: s.stats.overrides_applied == 1, 200)
-    first_spliced = len(h.setpoints) - 1
-    latency = h.status.stats.override_latency_periods
-    # The splice's rows begin after the first row that does not brake; every row before it since
-    # the command brakes, as the old plan does.
-    assert latency > 2
-    splice_state = h.setpoints[first_spliced - 1]
-    assert splice_state.accel_mm_s2 >= 0.0
-    assert all(sp.accel_mm_s2 < 0.0 for sp in h.setpoints[braking_from : first_spliced - 1])
+    assert h.status.stats.override_latency_periods == 2
+    reference.until(lambda s: reference.setpoints[-1].accel_mm_s2 >= 0.0, 200)
+    old = [sp for sp in reference.setpoints if sp.segment == 1]
+    old_s, old_feed = np.array([sp.s_mm for sp in old]), np.array([sp.feed_mm_s for sp in old])
+    braking_end_s = old_s[-1]
+    new = [sp for sp in h.setpoints[-3:] if sp.segment == 1]
+    h.until(lambda s: h.setpoints[-1].s_mm >= braking_end_s, 200)
+    new += [sp for sp in h.setpoints if sp.segment == 1 and new[-1].s_mm < sp.s_mm <= braking_end_s]
+    new = new[: next(k for k, sp in enumerate(new) if sp.accel_mm_s2 >= 0.0) + 1]
+    new_s, new_feed = np.array([sp.s_mm for sp in new]), np.array([sp.feed_mm_s for sp in new])
+    assert (new_feed < np.interp(new_s, old_s, old_feed) - 1.0).any()  # it brakes harder
+    assert (new_feed <= np.interp(new_s, old_s, old_feed) + 1e-6).all()
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     check_limits(h.target_array(), VMAX * 1.5)
     check_on_curve_and_end(h, h.program_under_test)
