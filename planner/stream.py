@@ -248,8 +248,9 @@ def _planned_rows(
             train.extend(segment.phases)
             t_end = train.t_s
             if segment.v_end_mm_s == 0.0:
-                # At rest inside the motion (a sharp corner): wait for the next period boundary.
-                t_end = math.ceil(t_end / T - _TIME_EPS) * T
+                # At rest inside the motion (a sharp corner): wait for the next period boundary
+                # (or none, where the rest falls on one within round-off).
+                t_end = max(math.ceil(t_end / T - _TIME_EPS) * T, t_end)
                 train.extend([Phase(t_end - train.t_s, 0.0)])
             k_end = max(k_end, math.ceil(t_end / T - _TIME_EPS))  # rows with k T < t_end
             t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, segment.a_end_mm_s2

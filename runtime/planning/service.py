@@ -41,7 +41,7 @@ import numpy as np
 from planner.braking import BrakingProfile
 from planner.errors import PlannerError
 from planner.nurbs import NurbsCurve
-from planner.stream import Path, braking_end_mm_s, stream_setpoints
+from planner.stream import BRAKING_TOLERANCE_MM_S2, Path, braking_end_mm_s, stream_setpoints
 from planner.types import Limits, MotionState, SetpointBlock
 from runtime.config import MachineConfig
 from runtime.curves import limits_for_curve, planner_limits
@@ -351,8 +351,18 @@ class PlannerService:
         cycle = self._shared.cycle_reports.latest()
         row = cycle.next_row + job.splice_lead
         last_planned = ring.write_count - 1
+        braking_end = None
+        if row <= last_planned and ring.accel_mm_s2[ring.slot(row)] < -BRAKING_TOLERANCE_MM_S2:
+            end = self._braking_end(ring, row, last_planned)
+            if end is None:
+                return self._extend_for_splice(job, ring)  # its braking's end is not planned yet
+            end_row, braking_end = end
+            if braking_end == 0.0:
+                # Braking to rest (a sharp corner, a segment's end): braking harder would stop
+                # short of it; the re-plan starts at that rest instead.
+                row, braking_end = end_row, None
         if row > last_planned or self._row_ends_segment(ring, row):
-            if job.done and row > last_planned:
+            if job.done and (row > last_planned or self._row_ends_job(ring, row)):
                 job.splice_override = None  # the rest is the braking to the end: nothing to re-plan
                 return True
             return self._extend_for_splice(job, ring)
@@ -363,11 +373,6 @@ class PlannerService:
         state = MotionState(
             float(ring.s_mm[slot]), float(ring.feed_mm_s[slot]), float(ring.accel_mm_s2[slot])
         )
-        braking_end = None
-        if state.a_mm_s2 < 0.0:
-            braking_end = self._braking_end_mm_s(ring, row, last_planned)
-            if braking_end is None:
-                return self._extend_for_splice(job, ring)  # its braking's end is not planned yet
         limits = tuple(self._limits_for(path, override) for path in job.paths)
         other_index = 1 - job.ring
         other = self._shared.rings[other_index]
@@ -400,15 +405,19 @@ class PlannerService:
             self._offer(job, other_index, row + 1)
         return True
 
-    def _braking_end_mm_s(self, ring: SetpointRing, row: int, last: int) -> float | None:
-        """The feed the braking through ``row`` comes to (:func:`planner.stream.braking_end_mm_s`),
-        or None while its end is not planned."""
-        rows = []
-        for k in range(row, last + 1):
-            rows.append(ring.slot(k))
-            if ring.accel_mm_s2[rows[-1]] >= 0.0:
-                break
-        return braking_end_mm_s(ring.feed_mm_s[rows], ring.accel_mm_s2[rows], self._period_s)
+    def _braking_end(self, ring: SetpointRing, row: int, last: int) -> tuple[int, float] | None:
+        """The first row after the braking through ``row`` and the feed that braking comes to
+        (:func:`planner.stream.braking_end_mm_s`), or None while its end is not planned."""
+        slots = []
+        for end_row in range(row, last + 1):
+            slots.append(ring.slot(end_row))
+            if ring.accel_mm_s2[slots[-1]] >= -BRAKING_TOLERANCE_MM_S2:
+                feed = braking_end_mm_s(
+                    ring.feed_mm_s[slots], ring.accel_mm_s2[slots], self._period_s
+                )
+                assert feed is not None
+                return end_row, feed
+        return None
 
     def _try_further_ahead(self, job: _Job) -> None:
         """The cycle got to the splice's first row first: plan it again beyond what this try
@@ -438,6 +447,10 @@ class PlannerService:
     @staticmethod
     def _row_ends_segment(ring: SetpointRing, row: int) -> bool:
         return bool(ring.flags[ring.slot(row)] & RowFlag.LAST_OF_SEGMENT)
+
+    @staticmethod
+    def _row_ends_job(ring: SetpointRing, row: int) -> bool:
+        return bool(ring.flags[ring.slot(row)] & RowFlag.LAST_OF_JOB)
 
     def _commit_splice(self, job: _Job) -> None:
         spliced = job.candidate

@@ -114,6 +114,16 @@ def test_a_plan_from_a_braking_state_without_its_braking_end_is_refused_by_name(
         next(stream_setpoints(path, LIMITS, T, start=braking))
 
 
+def test_a_braking_to_rest_that_ends_on_a_period_boundary_within_round_off():
+    # Braking from 92.75 mm/s at -700 mm/s² to rest ends 1e-17 s after the period boundary at
+    # 0.12 s: the dwell to the next boundary must not be negative.
+    line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [100.0, 0.0]], [0, 0, 1, 1])
+    start = MotionState(10.0, 92.75, -700.0)
+    block = plan_setpoints(Path(line, LIMITS, T), LIMITS, T, start=start, braking_end_mm_s=0.0)
+    assert block.last and tuple(block.position_mm[-1]) == (100.0, 0.0)
+    assert (block.feed_mm_s >= 0.0).all()
+
+
 def test_hold_stops_on_the_path_within_the_braking_distance(curve, path):
     first = plan_setpoints(path, LIMITS, T)
     k = int(np.argmax(first.feed_mm_s >= 100.0 - 1e-9)) + 5

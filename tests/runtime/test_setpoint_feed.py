@@ -237,3 +237,16 @@ def test_an_override_given_while_the_plan_brakes_brakes_at_once_never_faster_on_
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     check_limits(h.target_array(), VMAX * 1.5)
     check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_an_override_given_in_the_final_braking_leaves_it_as_planned(h: Harness) -> None:
+    """Braking harder to the end would stop short of it: the braking to rest is not re-planned."""
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: s.phase is MotionPhase.PROGRAM and s.path_s_mm > 150.0, 2000)
+    h.until(lambda s: h.setpoints[-1].accel_mm_s2 < -300.0, 200)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=50.0)
+    h.until(lambda s: s.state is MachineState.STANDBY, 500)
+    assert h.status.stats.overrides_applied == 0
+    assert h.planner._job is None or h.planner._job.splice_override is None
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
