@@ -361,18 +361,22 @@ class PlannerService:
                 # Braking to rest (a sharp corner, a segment's end): braking harder would stop
                 # short of it; the re-plan starts at that rest instead.
                 row, braking_end = end_row, None
-        if row > last_planned or self._row_ends_segment(ring, row):
-            if job.done and (row > last_planned or self._row_ends_job(ring, row)):
-                job.splice_override = None  # the rest is the braking to the end: nothing to re-plan
-                return True
+        if row > last_planned and not job.done:
             return self._extend_for_splice(job, ring)
+        if row > last_planned or self._row_ends_job(ring, row):
+            job.splice_override = None  # the rest is the braking to the end: nothing to re-plan
+            return True
         override = job.splice_override
         assert override is not None
         slot = ring.slot(row)
         segment = int(ring.segment[slot])
-        state = MotionState(
-            float(ring.s_mm[slot]), float(ring.feed_mm_s[slot]), float(ring.accel_mm_s2[slot])
-        )
+        if self._row_ends_segment(ring, row):
+            # At rest at the end of a segment (the approach): the next one from its start.
+            segment, state = segment + 1, MotionState(0.0)
+        else:
+            state = MotionState(
+                float(ring.s_mm[slot]), float(ring.feed_mm_s[slot]), float(ring.accel_mm_s2[slot])
+            )
         limits = tuple(self._limits_for(path, override) for path in job.paths)
         other_index = 1 - job.ring
         other = self._shared.rings[other_index]

@@ -250,3 +250,22 @@ def test_an_override_given_in_the_final_braking_leaves_it_as_planned(h: Harness)
     assert h.planner._job is None or h.planner._job.splice_override is None
     check_limits(h.target_array(), VMAX)
     check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_an_override_given_as_the_approach_brakes_to_the_program_start_applies_from_there(
+    h: Harness,
+) -> None:
+    """The approach brakes to rest at the program's start: the program is re-planned from that
+    rest, its first row is the first spliced one."""
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: s.phase is MotionPhase.APPROACH and h.setpoints[-1].accel_mm_s2 < 0.0, 2000)
+    commanded_at = len(h.setpoints)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=50.0)
+    h.until(lambda s: s.stats.overrides_applied == 1, 500)
+    program_starts_at = next(k for k, sp in enumerate(h.setpoints) if sp.segment == 1)
+    assert len(h.setpoints) - 1 == program_starts_at
+    assert h.status.stats.override_latency_periods == program_starts_at - commanded_at
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    assert max(sp.feed_mm_s for sp in h.setpoints if sp.segment == 1) <= 50.0 * (1 + 1e-9)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
