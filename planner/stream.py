@@ -174,10 +174,13 @@ def stream_setpoints(
 def braking_end_mm_s(
     feed_mm_s: Sequence[float], accel_mm_s2: Sequence[float], period_s: float
 ) -> float | None:
-    """The feed an earlier plan's braking comes to, from its rows starting at a braking one:
-    the lowest feed up to the first row that does not brake, less what the last braking row's
-    deceleration may take off before that row (the rows sample the motion), or None while every
-    row given brakes.
+    """The feed an earlier plan's braking comes to, from its rows starting at a braking one, or
+    None while every row given brakes.
+
+    The braking ends between the last braking row and the first that does not brake, where the
+    acceleration crosses zero; over that period the plan's jerk is taken as constant (a braking
+    ends on one jerk phase), which puts the crossing's feed a²T / (2 (a_next - a)) below the last
+    braking row's. The result is the lower of that and the lowest feed of the rows.
 
     For a re-plan from a braking row (``stream_setpoints(start=..., braking_end_mm_s=...)``):
     braking as hard as the limits allow to a feed the earlier plan comes down to anyway is never
@@ -187,8 +190,9 @@ def braking_end_mm_s(
         if accel >= -BRAKING_TOLERANCE_MM_S2:
             if k == 0:
                 return float(feed_mm_s[0])
-            lowest = min(feed_mm_s[: k + 1])
-            return max(0.0, float(lowest) + float(accel_mm_s2[k - 1]) * period_s)
+            a, a_next = float(accel_mm_s2[k - 1]), float(accel)
+            crossing = float(feed_mm_s[k - 1]) - a * a * period_s / (2.0 * (a_next - a))
+            return max(0.0, min(float(min(feed_mm_s[: k + 1])), crossing))
     return None
 
 

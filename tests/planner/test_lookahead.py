@@ -15,7 +15,7 @@ from planner.checker import Checker
 from planner.envelope import CHORD_MARGIN, FeedEnvelope
 from planner.nurbs import NurbsCurve
 from planner.refine import PIN_MARGIN, brake_first, refine
-from planner.stream import Path, plan_setpoints, stream_setpoints
+from planner.stream import Path, braking_end_mm_s, plan_setpoints, stream_setpoints
 from planner.types import Limits, MotionState, SetpointBlock
 from planner.window import PlanLimits, Window, passes, segment_plan, sensitive_points
 
@@ -112,6 +112,20 @@ def test_a_plan_from_a_braking_state_without_its_braking_end_is_refused_by_name(
     braking = first.state(int(np.argmax(first.accel_mm_s2 < -100.0)))
     with pytest.raises(ValueError, match=r"start\.a_mm_s2: got -\d.*needs braking_end_mm_s"):
         next(stream_setpoints(path, LIMITS, T, start=braking))
+
+
+def test_a_braking_end_is_where_the_acceleration_crosses_zero_between_two_rows():
+    # A braking ending on one jerk phase, sampled every period: the feed where its acceleration
+    # crosses zero lies below both rows around the crossing.
+    jerk, a0, v0 = 20000.0, -520.0, 40.0  # the acceleration crosses zero mid-period
+    t = np.arange(0, 8) * T
+    accel = a0 + jerk * t
+    feed = v0 + a0 * t + jerk * t**2 / 2.0
+    lowest = v0 - a0 * a0 / (2.0 * jerk)
+    assert feed.min() > lowest + 0.03
+    assert braking_end_mm_s(feed, accel, T) == pytest.approx(lowest, rel=1e-12)
+    assert braking_end_mm_s(feed[:3], accel[:3], T) is None  # its end is not in these rows
+    assert braking_end_mm_s([0.0, 0.0], [0.0, 0.0], T) == 0.0
 
 
 def test_a_braking_to_rest_that_ends_on_a_period_boundary_within_round_off():
