@@ -23,7 +23,7 @@ end is exactly C(last knot), at rest. A stop at a sharp corner (zero feed limit)
 period boundary, so that the corner itself is a setpoint.
 
 Not modelled: reverse motion along the path; per-axis jerk; a start that brakes without the
-earlier plan's braking end (:func:`braking_end_mm_s`).
+earlier plan's braking end (:func:`braking_end_from_rows`).
 """
 
 from __future__ import annotations
@@ -126,9 +126,9 @@ def stream_setpoints(
     :param start: motion state to continue from; the first row is then one period after it.
         Default: at rest at s = 0, and the first row is that start.
     :param braking_end_mm_s: for a start that brakes (required then): the feed the earlier
-        plan's braking comes to (:func:`braking_end_mm_s`); the plan brakes to it, or to vmax if
-        lower, as quickly as the limits allow, and plans on from there. A start that does not
-        brake eases its acceleration off at once.
+        plan's braking comes to (:func:`braking_end_from_rows`); the plan brakes to it, or to
+        vmax if lower, as quickly as the limits allow, and plans on from there. A start that
+        does not brake eases its acceleration off at once.
     :param stop: decelerate to rest as soon as the jerk and acceleration limits allow.
     :param lookahead: False gives the paper's comparison case, eq. (4) alone each period.
     :param update: parameter update, ``"corrected"`` or ``"taylor2"`` (eq. (2)).
@@ -171,7 +171,7 @@ def stream_setpoints(
     yield from _blocks(path, interp, rows, block_periods)
 
 
-def braking_end_mm_s(
+def braking_end_from_rows(
     feed_mm_s: Sequence[float], accel_mm_s2: Sequence[float], period_s: float
 ) -> float | None:
     """The feed an earlier plan's braking comes to, from its rows starting at a braking one, or

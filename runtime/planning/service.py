@@ -16,8 +16,9 @@ returns, so the process loop stays responsive to the cycle's requests:
   earlier plans seed it, :mod:`planner.warmstart`), and a try that comes too late costs a whole
   re-plan more than one started a little further ahead. A splice from a row that brakes
   brakes at once, as hard as the limits allow, to the feed the old rows' braking comes to
-  (:func:`planner.stream.braking_end_mm_s`): never faster on the path than that braking, which
-  the curve ahead needs;
+  (:func:`planner.stream.braking_end_from_rows`): never faster on the path than that braking,
+  which the curve ahead needs. One braking to rest (a sharp corner, the approach's end) starts
+  at that rest instead, and one in the job's final braking is dropped;
 - otherwise the next block of the job, up to :attr:`PlannerService.buffer_high_periods` rows
   ahead of the cycle.
 
@@ -41,7 +42,7 @@ import numpy as np
 from planner.braking import BrakingProfile
 from planner.errors import PlannerError
 from planner.nurbs import NurbsCurve
-from planner.stream import BRAKING_TOLERANCE_MM_S2, Path, braking_end_mm_s, stream_setpoints
+from planner.stream import BRAKING_TOLERANCE_MM_S2, Path, braking_end_from_rows, stream_setpoints
 from planner.types import Limits, MotionState, SetpointBlock
 from runtime.config import MachineConfig
 from runtime.curves import limits_for_curve, planner_limits
@@ -411,12 +412,12 @@ class PlannerService:
 
     def _braking_end(self, ring: SetpointRing, row: int, last: int) -> tuple[int, float] | None:
         """The first row after the braking through ``row`` and the feed that braking comes to
-        (:func:`planner.stream.braking_end_mm_s`), or None while its end is not planned."""
+        (:func:`planner.stream.braking_end_from_rows`), or None while its end is not planned."""
         slots = []
         for end_row in range(row, last + 1):
             slots.append(ring.slot(end_row))
             if ring.accel_mm_s2[slots[-1]] >= -BRAKING_TOLERANCE_MM_S2:
-                feed = braking_end_mm_s(
+                feed = braking_end_from_rows(
                     ring.feed_mm_s[slots], ring.accel_mm_s2[slots], self._period_s
                 )
                 assert feed is not None

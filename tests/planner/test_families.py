@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from test_properties import assert_every_limit_holds, assert_joined_motion_keeps_every_limit
 
 from planner.nurbs import NurbsCurve
-from planner.stream import Path, braking_end_mm_s, plan_setpoints, stream_setpoints
+from planner.stream import Path, braking_end_from_rows, plan_setpoints, stream_setpoints
 from planner.types import Limits
 
 T = 0.004
@@ -81,7 +81,7 @@ def test_replans_keep_every_limit(curve, delta, where, braking, ratio):
         limits.with_feed_override(ratio),
         T,
         start=first.state(row),
-        braking_end_mm_s=braking_end_mm_s(first.feed_mm_s[row:], first.accel_mm_s2[row:], T),
+        braking_end_mm_s=braking_end_from_rows(first.feed_mm_s[row:], first.accel_mm_s2[row:], T),
     )
     assert_joined_motion_keeps_every_limit(curve, first, row, replan, limits)
 
