@@ -12,6 +12,10 @@ seeds only re-plans), so a program's repeats are the same motion whatever ran be
 still checks every segment of a seeded window: a warm start changes how fast a plan is found,
 never which limits it keeps.
 
+Memory: one record per point the refinement added, which grows with the path as its arc-length
+table does, more slowly (380 points on a winding 1,000-span curve, none on a smooth 2,000-span
+one).
+
 Units: s in mm, feeds mm/s, accelerations mm/s². Pure computation; one path's memory, used by
 one plan at a time (as the path itself), not thread-safe.
 """
