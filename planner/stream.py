@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -171,16 +171,26 @@ def stream_setpoints(
     yield from _blocks(path, interp, rows, block_periods)
 
 
+@dataclass(frozen=True)
+class BrakingEnd:
+    """Where an earlier plan's braking ends, found in its rows (:func:`braking_end_from_rows`)."""
+
+    row: int
+    """Index of the first row given that does not brake."""
+    feed_mm_s: float
+    """The feed the braking comes to."""
+
+
 def braking_end_from_rows(
     feed_mm_s: Sequence[float], accel_mm_s2: Sequence[float], period_s: float
-) -> float | None:
-    """The feed an earlier plan's braking comes to, from its rows starting at a braking one, or
-    None while every row given brakes.
+) -> BrakingEnd | None:
+    """Where an earlier plan's braking ends, from its rows starting at a braking one, or None
+    while every row given brakes.
 
     The braking ends between the last braking row and the first that does not brake, where the
     acceleration crosses zero; over that period the plan's jerk is taken as constant (a braking
     ends on one jerk phase), which puts the crossing's feed a²T / (2 (a_next - a)) below the last
-    braking row's. The result is the lower of that and the lowest feed of the rows.
+    braking row's. The feed it comes to is the lower of that and the lowest feed of the rows.
 
     For a re-plan from a braking row (``stream_setpoints(start=..., braking_end_mm_s=...)``):
     braking as hard as the limits allow to a feed the earlier plan comes down to anyway is never
@@ -189,10 +199,10 @@ def braking_end_from_rows(
     for k, accel in enumerate(accel_mm_s2):
         if accel >= -BRAKING_TOLERANCE_MM_S2:
             if k == 0:
-                return float(feed_mm_s[0])
+                return BrakingEnd(0, float(feed_mm_s[0]))
             a, a_next = float(accel_mm_s2[k - 1]), float(accel)
             crossing = float(feed_mm_s[k - 1]) - a * a * period_s / (2.0 * (a_next - a))
-            return max(0.0, min(float(min(feed_mm_s[: k + 1])), crossing))
+            return BrakingEnd(k, max(0.0, min(float(min(feed_mm_s[: k + 1])), crossing)))
     return None
 
 

@@ -268,7 +268,7 @@ class SetpointRing:
         """Write rows after the last one and publish them (the caller checked :meth:`room`)."""
         count = len(s_mm)
         first = self.write_count
-        slots = (np.arange(first, first + count) % self.capacity).astype(np.intp)
+        slots = self.slots(first, first + count)
         self.s_mm[slots] = s_mm
         self.feed_mm_s[slots] = feed_mm_s
         self.accel_mm_s2[slots] = accel_mm_s2
@@ -298,6 +298,10 @@ class SetpointRing:
 
     def slot(self, row: int) -> int:
         return row % self.capacity
+
+    def slots(self, first_row: int, stop_row: int) -> np.ndarray:
+        """The slots of rows ``first_row`` up to ``stop_row`` (excluded), for indexing."""
+        return (np.arange(first_row, stop_row) % self.capacity).astype(np.intp)
 
     def hold_from(self, job: int, row: int) -> None:
         """The cycle may still read ``job``'s rows from ``row`` on (-1 job: none)."""

@@ -87,10 +87,9 @@ class _Job:
     """The cycle accepted the job (its first offer)."""
     splice_override: float | None = None
     splice_lead: int = 0
-    pending_state: tuple[int, MotionState] | None = None
-    """Where the next stream of the job starts (segment, state) when none is open."""
-    braking_end_mm_s: float | None = None
-    """For a splice from a braking row: the feed that braking comes to (its first stream's)."""
+    pending_state: tuple[int, MotionState, float | None] | None = None
+    """Where the next stream of the job starts when none is open: segment, state, and for a
+    splice from a braking row the feed that braking comes to."""
     override_percent: float = 100.0
     candidate: _Job | None = None
     """A splice offered to the cycle: the re-planned rest of the job, in the other ring."""
@@ -211,6 +210,7 @@ class PlannerService:
         job.pending_state = (
             request.start_segment,
             MotionState(request.start_s_mm, request.start_v_mm_s, request.start_a_mm_s2),
+            None,
         )
         self._write_block(job, ring)
         self._offer(job, ring_index, 0)
@@ -304,24 +304,25 @@ class PlannerService:
         """Plan the job's next block and append it to ``ring`` (one block per call)."""
         if job.blocks is None:
             assert job.pending_state is not None
-            segment, state = job.pending_state
+            segment, state, braking_end = job.pending_state
             job.segment = segment
-            job.blocks = self._stream(job, segment, state)
+            job.blocks = self._stream(job, segment, state, braking_end)
             job.pending_state = None
-            job.braking_end_mm_s = None
         block = next(job.blocks, None)
         if block is None:
             _segment_finished(job)
             return
         self._append(job, ring, block)
 
-    def _stream(self, job: _Job, segment: int, state: MotionState) -> Iterator[SetpointBlock]:
+    def _stream(
+        self, job: _Job, segment: int, state: MotionState, braking_end_mm_s: float | None
+    ) -> Iterator[SetpointBlock]:
         return stream_setpoints(
             job.paths[segment],
             job.limits[segment],
             self._period_s,
             start=state,
-            braking_end_mm_s=job.braking_end_mm_s,
+            braking_end_mm_s=braking_end_mm_s,
             lookahead=self._lookahead,
             update=self._update,
             block_periods=self.block_periods,
@@ -354,24 +355,27 @@ class PlannerService:
         last_planned = ring.write_count - 1
         braking_end = None
         if row <= last_planned and ring.accel_mm_s2[ring.slot(row)] < -BRAKING_TOLERANCE_MM_S2:
-            end = self._braking_end(ring, row, last_planned)
+            slots = ring.slots(row, last_planned + 1)
+            end = braking_end_from_rows(
+                ring.feed_mm_s[slots], ring.accel_mm_s2[slots], self._period_s
+            )
             if end is None:
                 return self._extend_for_splice(job, ring)  # its braking's end is not planned yet
-            end_row, braking_end = end
+            braking_end = end.feed_mm_s
             if braking_end == 0.0:
                 # Braking to rest (a sharp corner, a segment's end): braking harder would stop
                 # short of it; the re-plan starts at that rest instead.
-                row, braking_end = end_row, None
+                row, braking_end = row + end.row, None
         if row > last_planned and not job.done:
             return self._extend_for_splice(job, ring)
-        if row > last_planned or self._row_ends_job(ring, row):
+        if row > last_planned or self._row_has(ring, row, RowFlag.LAST_OF_JOB):
             job.splice_override = None  # the rest is the braking to the end: nothing to re-plan
             return True
         override = job.splice_override
         assert override is not None
         slot = ring.slot(row)
         segment = int(ring.segment[slot])
-        if self._row_ends_segment(ring, row):
+        if self._row_has(ring, row, RowFlag.LAST_OF_SEGMENT):
             # At rest at the end of a segment (the approach): the next one from its start.
             segment, state = segment + 1, MotionState(0.0)
         else:
@@ -391,8 +395,7 @@ class PlannerService:
             live=True,
             override_percent=override,
         )
-        spliced.pending_state = (segment, state)
-        spliced.braking_end_mm_s = braking_end
+        spliced.pending_state = (segment, state, braking_end)
         # Offered once its rows cover a stop from where it begins, and the time to plan more:
         # the cycle takes them from two periods on, and calls the planner behind when the rows
         # ahead no longer cover its braking.
@@ -409,20 +412,6 @@ class PlannerService:
         else:
             self._offer(job, other_index, row + 1)
         return True
-
-    def _braking_end(self, ring: SetpointRing, row: int, last: int) -> tuple[int, float] | None:
-        """The first row after the braking through ``row`` and the feed that braking comes to
-        (:func:`planner.stream.braking_end_from_rows`), or None while its end is not planned."""
-        slots = []
-        for end_row in range(row, last + 1):
-            slots.append(ring.slot(end_row))
-            if ring.accel_mm_s2[slots[-1]] >= -BRAKING_TOLERANCE_MM_S2:
-                feed = braking_end_from_rows(
-                    ring.feed_mm_s[slots], ring.accel_mm_s2[slots], self._period_s
-                )
-                assert feed is not None
-                return end_row, feed
-        return None
 
     def _try_further_ahead(self, job: _Job) -> None:
         """The cycle got to the splice's first row first: plan it again beyond what this try
@@ -450,12 +439,8 @@ class PlannerService:
         return True
 
     @staticmethod
-    def _row_ends_segment(ring: SetpointRing, row: int) -> bool:
-        return bool(ring.flags[ring.slot(row)] & RowFlag.LAST_OF_SEGMENT)
-
-    @staticmethod
-    def _row_ends_job(ring: SetpointRing, row: int) -> bool:
-        return bool(ring.flags[ring.slot(row)] & RowFlag.LAST_OF_JOB)
+    def _row_has(ring: SetpointRing, row: int, flag: RowFlag) -> bool:
+        return bool(ring.flags[ring.slot(row)] & flag)
 
     def _commit_splice(self, job: _Job) -> None:
         spliced = job.candidate
@@ -494,6 +479,6 @@ def _segment_finished(job: _Job) -> None:
     is done."""
     job.blocks = None
     if job.segment + 1 < len(job.paths):
-        job.pending_state = (job.segment + 1, MotionState(0.0))
+        job.pending_state = (job.segment + 1, MotionState(0.0), None)
     else:
         job.done = True

@@ -81,7 +81,9 @@ def test_replans_keep_every_limit(curve, delta, where, braking, ratio):
         limits.with_feed_override(ratio),
         T,
         start=first.state(row),
-        braking_end_mm_s=braking_end_from_rows(first.feed_mm_s[row:], first.accel_mm_s2[row:], T),
+        braking_end_mm_s=braking_end_from_rows(
+            first.feed_mm_s[row:], first.accel_mm_s2[row:], T
+        ).feed_mm_s,
     )
     assert_joined_motion_keeps_every_limit(curve, first, row, replan, limits)
 

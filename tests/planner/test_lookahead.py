@@ -15,7 +15,13 @@ from planner.checker import Checker
 from planner.envelope import CHORD_MARGIN, FeedEnvelope
 from planner.nurbs import NurbsCurve
 from planner.refine import PIN_MARGIN, brake_first, refine
-from planner.stream import Path, braking_end_from_rows, plan_setpoints, stream_setpoints
+from planner.stream import (
+    BrakingEnd,
+    Path,
+    braking_end_from_rows,
+    plan_setpoints,
+    stream_setpoints,
+)
 from planner.types import Limits, MotionState, SetpointBlock
 from planner.window import PlanLimits, Window, passes, segment_plan, sensitive_points
 
@@ -123,9 +129,11 @@ def test_a_braking_end_is_where_the_acceleration_crosses_zero_between_two_rows()
     feed = v0 + a0 * t + jerk * t**2 / 2.0
     lowest = v0 - a0 * a0 / (2.0 * jerk)
     assert feed.min() > lowest + 0.03
-    assert braking_end_from_rows(feed, accel, T) == pytest.approx(lowest, rel=1e-12)
+    end = braking_end_from_rows(feed, accel, T)
+    assert end.feed_mm_s == pytest.approx(lowest, rel=1e-12)
+    assert end.row == 7  # the first row that does not brake
     assert braking_end_from_rows(feed[:3], accel[:3], T) is None  # its end is not in these rows
-    assert braking_end_from_rows([0.0, 0.0], [0.0, 0.0], T) == 0.0
+    assert braking_end_from_rows([0.0, 0.0], [0.0, 0.0], T) == BrakingEnd(0, 0.0)
 
 
 def test_a_braking_to_rest_that_ends_on_a_period_boundary_within_round_off():

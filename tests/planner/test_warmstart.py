@@ -11,6 +11,7 @@ import planner.refine
 from planner.stream import Path, plan_setpoints
 from planner.types import Limits, SetpointBlock
 from planner.warmstart import RefinedPoints
+from planner.window import Window
 
 T = 0.004
 LIMITS = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-3)
@@ -63,8 +64,6 @@ def test_a_plan_from_rest_is_the_same_motion_whatever_was_planned_before():
 
 
 def test_points_at_the_vmax_of_either_plan_are_not_offered():
-    from planner.window import Window
-
     memory = RefinedPoints()
     refined = Window([0.0, 10.0], [0.0, 0.0], [False])
     refined.insert(0, 3.0, 50.0)  # placed by the limit
