@@ -247,16 +247,10 @@ def _planned_rows(
     )
     t, s, v, a = 0.0, state.s_mm, state.v_mm_s, state.a_mm_s2
     k_next = k_end = 0 if fresh else 1
-    # What the windows release is sampled together once it holds min_rows rows, when the next
-    # release comes (the rows before the end go out with the final row): one vectorised
-    # sampling instead of one per segment.
+    # What the windows release is sampled together once it holds min_rows rows, before the
+    # next window is planned: one vectorised sampling instead of one per segment.
     train = PhaseTrain(t, s, v, a)
     for released in segments:
-        if k_end - k_next >= min_rows:
-            times = np.arange(k_next, k_end) * T
-            yield (times, *train.sample(times)), False
-            k_next = k_end
-            train = PhaseTrain(t, s, v, a)
         for segment in released:
             train.restart(t, s, v, a)  # each segment starts from its exact planned state
             train.extend(segment.phases)
@@ -268,6 +262,11 @@ def _planned_rows(
                 train.extend([Phase(t_end - train.t_s, 0.0)])
             k_end = max(k_end, math.ceil(t_end / T - _TIME_EPS))  # rows with k T < t_end
             t, s, v, a = t_end, segment.s_end_mm, segment.v_end_mm_s, segment.a_end_mm_s2
+        if k_end - k_next >= min_rows:
+            times = np.arange(k_next, k_end) * T
+            yield (times, *train.sample(times)), False
+            k_next = k_end
+            train = PhaseTrain(t, s, v, a)
     times = np.arange(k_next, k_end) * T
     rows = train.sample(times)
     k_last = max(k_end, math.ceil(t / T - _TIME_EPS))
@@ -322,9 +321,11 @@ def _blocks(
     for rows_in, done in rows:
         pending.append(rows_in)
         count += len(rows_in[0])
-        while count > batch or (done and count > 0):
+        while count >= batch or (done and count > 0):
             cols = [np.concatenate([p[i] for p in pending]) for i in range(5)]
             n = min(count, largest)
+            if not (done and n == count):
+                n -= n % block_periods  # whole blocks until the last
             rest = [c[n:] for c in cols]
             big = _block(path, interp, [c[:n] for c in cols], last=done and n == count)
             for start in range(0, n, block_periods):

@@ -11,9 +11,11 @@ import pytest
 import setpoint_checks as sc
 import yaml
 
+from planner import lookahead
 from planner.checker import Checker
 from planner.envelope import CHORD_MARGIN, FeedEnvelope
 from planner.nurbs import NurbsCurve
+from planner.profiles.scurve import braking_distance_mm
 from planner.refine import PIN_MARGIN, brake_first, refine
 from planner.stream import (
     BrakingEnd,
@@ -285,6 +287,30 @@ def test_first_block_of_a_long_curve_is_fast():
     elapsed = time.process_time() - started
     assert len(block) == 256 and not np.isnan(block.position_mm).any()
     assert elapsed < FIRST_BLOCK_S
+
+
+def test_a_first_block_waits_for_one_short_window(monkeypatch):
+    window_ends = []
+
+    def recording_refine(w, checker, v_start, lim):
+        window_ends.append(w.s[-1])
+        return refine(w, checker, v_start, lim)
+
+    monkeypatch.setattr(lookahead, "refine", recording_refine)
+    path = Path(long_curve(2000), LIMITS, T)
+    block = next(stream_setpoints(path, LIMITS, T, block_periods=64))
+    braking_mm = braking_distance_mm(LIMITS.vmax_mm_s, LIMITS.amax_mm_s2, LIMITS.jmax_mm_s3)
+    assert len(block) == 64
+    assert len(window_ends) == 1
+    assert window_ends[0] < lookahead.WINDOW_BRAKING_DISTANCES * braking_mm / 2.0
+
+
+def test_the_motion_does_not_depend_on_the_block_size():
+    curve = long_curve(300, turn_rad=0.4)
+    small = plan_setpoints(Path(curve, LIMITS, T), LIMITS, T, block_periods=64)
+    large = plan_setpoints(Path(curve, LIMITS, T), LIMITS, T, block_periods=1024)
+    assert np.array_equal(small.s_mm, large.s_mm)
+    assert np.array_equal(small.position_mm, large.position_mm)
 
 
 def test_streaming_memory_does_not_grow_with_the_length():
