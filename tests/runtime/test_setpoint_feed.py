@@ -132,7 +132,7 @@ def test_a_splice_offered_too_late_is_refused_and_made_again_further_ahead(
     check_on_curve_and_end(h, h.program_under_test)
 
 
-def test_a_splice_starts_as_far_ahead_as_the_last_one_took_to_plan(
+def test_a_slow_splice_does_not_delay_the_next_one(
     h: Harness, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     start(h, 20.0)
@@ -144,19 +144,17 @@ def test_a_splice_starts_as_far_ahead_as_the_last_one_took_to_plan(
         h.period(3, plan=False)
 
     monkeypatch.setattr(PlannerService, "_write_block", slow_write_block)
-    # The first splice starts at the row the cycle takes next: planned too late for it (never
+    # The splice starts at the row the cycle takes next: planned too late for it (never
     # offered then), and made again further ahead.
     h.command(CommandCode.SET_OVERRIDE, override_percent=60.0)
     h.until(lambda s: s.stats.overrides_applied == 1, 200)
-    first = h.status.stats.override_latency_periods
-    assert first > 3
-    # The next starts as far ahead as that one took: accepted at its first offer, sooner.
-    offers = h.shared.planner_reports.latest().offer.seq
+    assert h.status.stats.override_latency_periods > 3
+    monkeypatch.undo()
+    # The host is quiet again: the next splice starts at the row the cycle takes next, not as
+    # far ahead as the slow one took.
     h.command(CommandCode.SET_OVERRIDE, override_percent=40.0)
     h.until(lambda s: s.stats.overrides_applied == 2, 200)
-    assert h.shared.planner_reports.latest().offer.seq == offers + 1
-    assert h.status.stats.override_latency_periods < first
-    monkeypatch.undo()
+    assert h.status.stats.override_latency_periods == 2
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     check_limits(h.target_array(), VMAX)
     check_on_curve_and_end(h, h.program_under_test)
