@@ -11,11 +11,12 @@ returns, so the process loop stays responsive to the cycle's requests:
   the one the cycle takes next (the ring rows carry feed and acceleration), written into the
   other ring from the row after it, and offered; the cycle accepts it if it has not reached
   that row, else it is made again further ahead. A first try starts from the row the cycle
-  takes next (:attr:`PlannerService.splice_lead_periods`): re-planning costs from 1.5 ms where
-  the window ahead is easy to 5 ms where it holds a sharp stretch (the path's earlier plans seed
-  it, :mod:`planner.warmstart`), so most tries are in time. Starting each try as far ahead as
-  the last one took was tried: a slow splice then delayed the fast ones after it, and 41 % of
-  the cycle bench's override changes came within 2 periods, against 80 % now.
+  takes next (:attr:`PlannerService.splice_lead_periods`): to its first block, re-planning costs
+  1.5-5 ms on the paper's curve and up to 20 ms where the window ahead holds cusps or tight
+  loops (the path's earlier plans seed it, :mod:`planner.warmstart`), so most tries are in
+  time. Starting each try as far ahead as the last one took was tried: a slow splice then
+  delayed the fast ones after it, and 41 % of the cycle bench's override changes came within
+  2 periods, against 80 % now.
   A splice from a row that brakes brakes at once, as hard as the limits allow, to the feed the
   old rows' braking comes to (:func:`planner.stream.braking_end_from_rows`): never faster on
   the path than that braking, which the curve ahead needs. One braking to rest (a sharp
