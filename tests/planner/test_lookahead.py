@@ -305,6 +305,23 @@ def test_a_first_block_waits_for_one_short_window(monkeypatch):
     assert window_ends[0] < lookahead.WINDOW_BRAKING_DISTANCES * braking_mm / 2.0
 
 
+def test_a_cruise_is_released_up_to_where_the_window_end_would_brake():
+    # On a straight line the first window cruises at vmax and brakes to its end: everything
+    # before that braking is final, and released at once.
+    line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [1000.0, 0.0]], [0, 0, 1, 1])
+    path = Path(line, LIMITS, T)
+    lim = PlanLimits(vmax_mm_s=100.0, A=LIMITS.amax_mm_s2, J=LIMITS.jmax_mm_s3, T=T)
+    released = next(
+        lookahead.plan_segments(path.envelope, path.arc, lim, 0.0, 0.0, 0.0, stop=False)
+    )
+    braking_mm = braking_distance_mm(lim.vmax_mm_s, lim.A, lim.J)
+    window_mm = lookahead.FIRST_WINDOW_PERIODS * T * lim.vmax_mm_s + (
+        lookahead.FIRST_WINDOW_BRAKING_DISTANCES * braking_mm
+    )
+    assert released[-1].v_end_mm_s == lim.vmax_mm_s
+    assert released[-1].s_end_mm == pytest.approx(window_mm - braking_mm, abs=1e-6)
+
+
 def test_the_motion_does_not_depend_on_the_block_size():
     curve = long_curve(300, turn_rad=0.4)
     small = plan_setpoints(Path(curve, LIMITS, T), LIMITS, T, block_periods=64)
