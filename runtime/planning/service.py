@@ -82,6 +82,8 @@ class _Job:
     """Per segment: the base limits with the job's override."""
     ring: int
     segment: int
+    block_periods: int
+    """Rows per block of its streams."""
     blocks: Iterator[SetpointBlock] | None = None
     done: bool = False
     offer: RingOffer | None = None
@@ -109,7 +111,8 @@ class PlannerService:
     #: is refused and made again further ahead (by at least :data:`SPLICE_RETRY_MIN_PERIODS`,
     #: and as far as the refused one took).
     splice_lead_periods = 0
-    #: Rows per planned block (the first block of a job or splice comes as soon as it is planned).
+    #: Rows per planned block (the first block of a job or splice comes as soon as it is
+    #: planned); a splice's blocks hold the rows its offer needs, where those are more.
     block_periods = 64
 
     def __init__(self, shared: SharedState, config: MachineConfig) -> None:
@@ -207,6 +210,7 @@ class PlannerService:
             limits=limits,
             ring=ring_index,
             segment=request.start_segment,
+            block_periods=self.block_periods,
             override_percent=request.override_percent,
         )
         job.pending_state = (
@@ -280,7 +284,7 @@ class PlannerService:
         offered = job.candidate or job
         ring = self._shared.rings[offered.ring]
         ahead = ring.write_count - ring.first_row
-        if offered.done or ahead >= self.buffer_high_periods or ring.room() < self.block_periods:
+        if offered.done or ahead >= self.buffer_high_periods or ring.room() < offered.block_periods:
             return False
         self._write_block(offered, ring)
         return True
@@ -297,7 +301,7 @@ class PlannerService:
         ring = self._shared.rings[job.ring]
         cycle = self._shared.cycle_reports.latest()
         ahead = ring.write_count - (cycle.next_row if cycle.job == job.job else 0)
-        if ahead >= self.buffer_high_periods or ring.room() < self.block_periods:
+        if ahead >= self.buffer_high_periods or ring.room() < job.block_periods:
             return False
         self._write_block(job, ring)
         return True
@@ -327,7 +331,7 @@ class PlannerService:
             braking_end_mm_s=braking_end_mm_s,
             lookahead=self._lookahead,
             update=self._update,
-            block_periods=self.block_periods,
+            block_periods=job.block_periods,
         )
 
     def _append(self, job: _Job, ring: SetpointRing, block: SetpointBlock) -> None:
@@ -388,20 +392,22 @@ class PlannerService:
         other_index = 1 - job.ring
         other = self._shared.rings[other_index]
         other.begin(job.job, row + 1)
+        # Offered once its rows cover a stop from where it begins, and the time to plan more:
+        # the cycle takes them from two periods on, and calls the planner behind when the rows
+        # ahead no longer cover its braking. Its blocks hold that many rows, so that the offer
+        # waits for one block: a second would wait for the next window.
+        cover = self._rows_to_stop(state) + SPLICE_SLACK_PERIODS
         spliced = _Job(
             job=job.job,
             paths=job.paths,
             limits=limits,
             ring=other_index,
             segment=segment,
+            block_periods=max(self.block_periods, cover),
             live=True,
             override_percent=override,
         )
         spliced.pending_state = (segment, state, braking_end)
-        # Offered once its rows cover a stop from where it begins, and the time to plan more:
-        # the cycle takes them from two periods on, and calls the planner behind when the rows
-        # ahead no longer cover its braking.
-        cover = self._rows_to_stop(state) + SPLICE_SLACK_PERIODS
         while other.write_count - other.first_row < cover:
             self._write_block(spliced, other)
             if spliced.done or spliced.pending_state is not None:
@@ -434,7 +440,7 @@ class PlannerService:
 
     def _extend_for_splice(self, job: _Job, ring: SetpointRing) -> bool:
         """The splice row is not planned yet: the old plan goes on meanwhile."""
-        if job.done or ring.room() < self.block_periods:
+        if job.done or ring.room() < job.block_periods:
             return False
         self._write_block(job, ring)
         return True
@@ -448,6 +454,7 @@ class PlannerService:
         assert spliced is not None
         job.paths, job.limits = spliced.paths, spliced.limits
         job.segment, job.blocks, job.done = spliced.segment, spliced.blocks, spliced.done
+        job.block_periods = spliced.block_periods
         job.pending_state = spliced.pending_state
         job.override_percent = spliced.override_percent
         if job.splice_override == spliced.override_percent:

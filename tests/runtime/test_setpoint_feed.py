@@ -160,6 +160,46 @@ def test_a_slow_splice_does_not_delay_the_next_one(
     check_on_curve_and_end(h, h.program_under_test)
 
 
+def test_a_splice_is_offered_after_one_block_however_long_its_stop(
+    h: Harness, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    start(h, 5.0)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=150.0)
+    h.until(lambda s: s.feed_mm_s > 140.0, 500)
+    # From 140 mm/s a stop and the planning slack take more rows than a block: the splice
+    # plans them as one block, which waits for one window (a second block waits for the next).
+    splice, write_block = PlannerService._splice, PlannerService._write_block
+    blocks_per_splice: list[list[int]] = []
+    splicing = False
+
+    def recording_splice(self: PlannerService, job: object) -> bool:
+        nonlocal splicing
+        blocks_per_splice.append([])
+        splicing = True
+        try:
+            return splice(self, job)
+        finally:
+            splicing = False
+
+    def recording_write_block(self: PlannerService, job: object, ring: object) -> None:
+        before = ring.write_count
+        write_block(self, job, ring)
+        if splicing and job is not self._job:
+            blocks_per_splice[-1].append(ring.write_count - before)
+
+    monkeypatch.setattr(PlannerService, "_splice", recording_splice)
+    monkeypatch.setattr(PlannerService, "_write_block", recording_write_block)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=120.0)
+    h.until(lambda s: s.stats.overrides_applied == 2, 200)
+    assert h.status.stats.override_latency_periods == 2
+    assert len(blocks_per_splice[0]) == 1
+    assert blocks_per_splice[0][0] > PlannerService.block_periods
+    monkeypatch.undo()
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array(), VMAX * 1.5)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
 def test_override_zero_stops_on_the_path_and_a_new_override_moves_on(h: Harness) -> None:
     start(h, 40.0)
     h.command(CommandCode.SET_OVERRIDE, override_percent=0.0)
