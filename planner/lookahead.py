@@ -57,13 +57,14 @@ from planner.window import (
 
 #: Window length in braking distances from vmax, and the lower bound of the window, mm.
 WINDOW_BRAKING_DISTANCES, MIN_WINDOW_MM = 16.0, 1.0
-#: The first window covers this many periods at vmax plus this many braking distances from
-#: vmax, when that is shorter than a whole window: a first block (the planner process asks for
-#: 64 rows) then waits for the refinement of what it needs, not of a whole window. Measured on
-#: re-plans' first blocks against whole first windows: cusps median 12.2 -> 3.5 ms, loops 14.0
-#: -> 8.1 ms, the paper's curve's as before. Where windows end moves what refinement finds: of
-#: the bench's 12 family curves, 9 keep their motion time to the period, loops 0 and 3 take 5
-#: and 3 periods more (+0.6 %, +0.3 %), free 3 one less; the paper's curve keeps its own.
+#: The first window covers this many periods at vmax (at the start feed, when above it) plus
+#: this many braking distances from there, when that is shorter than a whole window: a first
+#: block (the planner process asks for 64 rows) then waits for the refinement of what it needs,
+#: not of a whole window. Measured on re-plans' first blocks against whole first windows: cusps
+#: median 12.2 -> 3.5 ms, loops 14.0 -> 8.1 ms, the paper's curve's as before. Where windows
+#: end moves what refinement finds: of the bench's 12 family curves, 9 keep their motion time
+#: to the period, loops 0 and 3 take 5 and 3 periods more (+0.6 %, +0.3 %), free 3 one less;
+#: the paper's curve keeps its own.
 FIRST_WINDOW_PERIODS, FIRST_WINDOW_BRAKING_DISTANCES = 65, 2.0
 #: A rest of the path shorter than this fraction of a window joins the window before it.
 TAIL_WINDOW_FRACTION = 0.5
@@ -149,16 +150,15 @@ def plan_segments(
         train.extend(first)
         s, v = arc.extent_mm(train.s_mm), v_first
         yield [SegmentPlan(tuple(first), s, v)]
-    vmax_braking_mm = braking_distance_mm(lim.vmax_mm_s, A, J)
-    full_window_mm = max(WINDOW_BRAKING_DISTANCES * vmax_braking_mm, MIN_WINDOW_MM)
-    window_mm = max(
-        min(
-            full_window_mm,
-            FIRST_WINDOW_PERIODS * lim.T * lim.vmax_mm_s
-            + FIRST_WINDOW_BRAKING_DISTANCES * vmax_braking_mm,
-        ),
-        MIN_WINDOW_MM,
+    full_window_mm = max(
+        WINDOW_BRAKING_DISTANCES * braking_distance_mm(lim.vmax_mm_s, A, J), MIN_WINDOW_MM
     )
+    # From above vmax (a lowered override) the first block brakes down to it first.
+    v_top = max(v, lim.vmax_mm_s)
+    first_window_mm = FIRST_WINDOW_PERIODS * lim.T * v_top + (
+        FIRST_WINDOW_BRAKING_DISTANCES * braking_distance_mm(v_top, A, J)
+    )
+    window_mm = max(min(full_window_mm, first_window_mm), MIN_WINDOW_MM)
     # A hair beyond the braking distance, so that round-off never makes the stop look infeasible.
     brake_mm = braking_distance_mm(v, A, J) * (1.0 + 1e-9) + 1e-9
     stop_at = arc.extent_mm(s + brake_mm) if stop else math.inf

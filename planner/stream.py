@@ -310,9 +310,10 @@ def _blocks(
 ) -> Iterator[SetpointBlock]:
     """Group rows into blocks, adding u and positions; the final block has last=True.
 
-    Parameters and positions are computed for all pending rows at once (up to ``BATCH_ROWS``)
-    as soon as they fill a block, then twice as many, and so on: the first block comes as soon
-    as it is planned, and later ones share the fixed cost of the vectorised curve evaluations.
+    Parameters and positions are computed together for the first block's rows as soon as they
+    are planned, then for twice as many, and so on up to ``BATCH_ROWS``: the first block waits
+    for its own rows alone (a first window may release several hundred), and later ones share
+    the fixed cost of the vectorised curve evaluations.
     """
     pending: list[_Rows] = []
     count = 0
@@ -323,7 +324,7 @@ def _blocks(
         count += len(rows_in[0])
         while count >= batch or (done and count > 0):
             cols = [np.concatenate([p[i] for p in pending]) for i in range(5)]
-            n = min(count, largest)
+            n = min(count, batch)
             if not (done and n == count):
                 n -= n % block_periods  # whole blocks until the last
             rest = [c[n:] for c in cols]

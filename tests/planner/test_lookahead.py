@@ -14,6 +14,7 @@ import yaml
 from planner import lookahead
 from planner.checker import Checker
 from planner.envelope import CHORD_MARGIN, FeedEnvelope
+from planner.interpolator import Interpolator
 from planner.nurbs import NurbsCurve
 from planner.profiles.scurve import braking_distance_mm
 from planner.refine import PIN_MARGIN, brake_first, refine
@@ -320,6 +321,41 @@ def test_a_cruise_is_released_up_to_where_the_window_end_would_brake():
     )
     assert released[-1].v_end_mm_s == lim.vmax_mm_s
     assert released[-1].s_end_mm == pytest.approx(window_mm - braking_mm, abs=1e-6)
+
+
+def test_a_first_block_from_above_vmax_waits_for_one_window(monkeypatch):
+    # A feed override lowered to 30 %: the first window holds the braking from 100 mm/s and
+    # enough of the new feed for a block.
+    windows = []
+
+    def recording_refine(w, checker, v_start, lim):
+        windows.append((w.s[0], w.s[-1]))
+        return refine(w, checker, v_start, lim)
+
+    monkeypatch.setattr(lookahead, "refine", recording_refine)
+    line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [1000.0, 0.0]], [0, 0, 1, 1])
+    path = Path(line, LIMITS, T)
+    slow = LIMITS.with_feed_override(0.3)
+    start = MotionState(100.0, LIMITS.vmax_mm_s, 0.0)
+    block = next(stream_setpoints(path, slow, T, start=start, block_periods=64))
+    assert len(block) == 64 and len(windows) == 1
+    assert block.feed_mm_s[-1] == pytest.approx(slow.vmax_mm_s)
+
+
+def test_a_first_block_evaluates_the_curve_for_its_own_rows_alone(monkeypatch):
+    # The first window of a straight line releases about 100 rows; the first block of 16 waits
+    # for their parameters and positions only.
+    evaluated_rows = []
+    parameters = Interpolator.parameters
+
+    def recording_parameters(self, s_mm):
+        evaluated_rows.append(len(s_mm))
+        return parameters(self, s_mm)
+
+    monkeypatch.setattr(Interpolator, "parameters", recording_parameters)
+    line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [1000.0, 0.0]], [0, 0, 1, 1])
+    block = next(stream_setpoints(Path(line, LIMITS, T), LIMITS, T, block_periods=16))
+    assert len(block) == 16 and evaluated_rows == [16]
 
 
 def test_the_motion_does_not_depend_on_the_block_size():
