@@ -46,6 +46,13 @@ def transition_phases(
     v0: float, a0: float, v1: float, a1: float, A: float, J: float
 ) -> list[Phase]:
     """Constant-jerk phases of the quickest change from (v0, a0) to (v1, a1) (|a0|, |a1| <= A)."""
+    return _phases(_transition_steps(v0, a0, v1, a1, A, J))
+
+
+def _transition_steps(
+    v0: float, a0: float, v1: float, a1: float, A: float, J: float
+) -> list[tuple[float, float]]:
+    """(duration, jerk) of the phases of :func:`transition_phases`."""
     dv = v1 - v0
     dv_lin = (a0 + a1) * abs(a1 - a0) / (2.0 * J)
     ends_sq = 0.5 * (a0 * a0 + a1 * a1)
@@ -63,29 +70,36 @@ def transition_phases(
         if a_p < -A:
             a_p = -A
             hold = (dv - (a0 * a0 + a1 * a1 - 2.0 * A * A) / (2.0 * J)) / -A
-    return _through(a0, a_p, max(hold, 0.0), a1, J)
+    return _steps_through(a0, a_p, max(hold, 0.0), a1, J)
 
 
-def _through(a0: float, a_m: float, hold_s: float, a1: float, J: float) -> list[Phase]:
-    """Phases a0 -> a_m (jerk +-J), hold a_m for hold_s, a_m -> a1 (jerk +-J)."""
-    phases = []
+def _steps_through(
+    a0: float, a_m: float, hold_s: float, a1: float, J: float
+) -> list[tuple[float, float]]:
+    """(duration, jerk) of a0 -> a_m (jerk +-J), hold a_m for hold_s, a_m -> a1 (jerk +-J).
+
+    Plain tuples: the searches below try many candidates, and only the chosen one becomes
+    :class:`Phase` s."""
+    steps = []
     if a_m != a0:
-        phases.append(Phase(abs(a_m - a0) / J, math.copysign(J, a_m - a0)))
+        steps.append((abs(a_m - a0) / J, math.copysign(J, a_m - a0)))
     if hold_s > 0.0:
-        phases.append(Phase(hold_s, 0.0))
+        steps.append((hold_s, 0.0))
     if a1 != a_m:
-        phases.append(Phase(abs(a1 - a_m) / J, math.copysign(J, a1 - a_m)))
-    return phases
+        steps.append((abs(a1 - a_m) / J, math.copysign(J, a1 - a_m)))
+    return steps
 
 
-def advance(v: float, a: float, phases: list[Phase]) -> tuple[float, float, float, float]:
-    """(distance, end speed, end acceleration, duration) of ``phases`` from (v, a).
+def _phases(steps: list[tuple[float, float]]) -> list[Phase]:
+    return [Phase(tau, j) for tau, j in steps]
 
-    Cosine phases are not expected here (they start and end at zero acceleration elsewhere).
-    """
+
+def _advance_steps(
+    v: float, a: float, steps: list[tuple[float, float]]
+) -> tuple[float, float, float, float]:
+    """(distance, end speed, end acceleration, duration) of ``steps`` from (v, a)."""
     s = t = 0.0
-    for phase in phases:
-        tau, j = phase.duration_s, phase.jerk_mm_s3
+    for tau, j in steps:
         s += v * tau + a * tau * tau / 2.0 + j * tau**3 / 6.0
         v += a * tau + j * tau * tau / 2.0
         a += j * tau
@@ -96,7 +110,7 @@ def advance(v: float, a: float, phases: list[Phase]) -> tuple[float, float, floa
 @functools.lru_cache(maxsize=CACHE_SIZE)
 def transition_distance_mm(v0: float, a0: float, v1: float, a1: float, A: float, J: float) -> float:
     """Distance of :func:`transition_phases`: the shortest any motion between the states needs."""
-    return advance(v0, a0, transition_phases(v0, a0, v1, a1, A, J))[0]
+    return _advance_steps(v0, a0, _transition_steps(v0, a0, v1, a1, A, J))[0]
 
 
 def settle_speed(v: float, a: float, J: float) -> float:
@@ -111,19 +125,19 @@ def segment_phases_between(
     plateau (if any) at most max(v_cap, v0, v1); None if no motion of these shapes fits L (L
     below the quickest transition's distance, which no motion can cover).
     """
-    direct = transition_phases(v0, a0, v1, a1, A, J)
-    d_direct = advance(v0, a0, direct)[0]
+    direct = _transition_steps(v0, a0, v1, a1, A, J)
+    d_direct = _advance_steps(v0, a0, direct)[0]
     if d_direct * (1.0 - PLATEAU_RTOL) - 1e-12 > L:
         return None
     if d_direct * (1.0 + PLATEAU_RTOL) + 1e-12 >= L:
-        return direct
+        return _phases(direct)
     plateau, v_p = _speed_plateau(v0, a0, v1, a1, L, v_cap, A, J)
     if plateau is not None and v_p >= max(v0, v1):
-        return plateau  # a peak above both ends: quicker than any run between them
+        return _phases(plateau)  # a peak above both ends: quicker than any run between them
     options = [p for p in (_run(v0, a0, v1, a1, L, A, J), plateau) if p is not None]
     if not options:
         return None
-    return min(options, key=lambda phases: sum(p.duration_s for p in phases))
+    return _phases(min(options, key=lambda steps: sum(tau for tau, _ in steps)))
 
 
 #: Acceleration plateaus tried by the run search, as fractions of A (denser near 0, where the
@@ -159,7 +173,7 @@ def _run_motion(v0: float, a0: float, a_m, a1: float, dv: float, J: float):
 
 def _run(
     v0: float, a0: float, v1: float, a1: float, L: float, A: float, J: float
-) -> list[Phase] | None:
+) -> list[tuple[float, float]] | None:
     """a0 -> a_m (jerk +-J), hold a_m, a_m -> a1, covering L: the quickest a_m found.
 
     The hold follows from the speed change; the distance, in closed form, is scanned over a
@@ -173,7 +187,7 @@ def _run(
     brackets = np.flatnonzero(
         np.isfinite(excess[:-1]) & np.isfinite(excess[1:]) & (excess[:-1] * excess[1:] <= 0.0)
     )
-    best: list[Phase] | None = None
+    best: list[tuple[float, float]] | None = None
     best_t = math.inf
     for i in brackets.tolist():
         a_m = _regula_falsi(
@@ -186,7 +200,7 @@ def _run(
         )
         d_m, t_m, hold_m = _run_motion(v0, a0, a_m, a1, dv, J)
         if hold_m >= 0.0 and abs(d_m - L) <= PLATEAU_RTOL * L and t_m < best_t:
-            best, best_t = _through(a0, a_m, hold_m, a1, J), t_m
+            best, best_t = _steps_through(a0, a_m, hold_m, a1, J), t_m
     return best
 
 
@@ -213,34 +227,32 @@ def _regula_falsi(f, x0: float, f0: float, x1: float, f1: float, tol: float) -> 
 
 def _speed_plateau(
     v0: float, a0: float, v1: float, a1: float, L: float, v_cap: float, A: float, J: float
-) -> tuple[list[Phase] | None, float]:
+) -> tuple[list[tuple[float, float]] | None, float]:
     """Transition to (v_p, 0), cruise, transition to (v1, a1); v_p the highest that fits.
 
-    Returns the phases (None if even the lowest plateau is too long) and v_p."""
+    Returns the (duration, jerk) steps (None if even the lowest plateau is too long) and v_p."""
 
-    def pieces(v_p: float) -> tuple[list[Phase], list[Phase], float]:
-        up = transition_phases(v0, a0, v_p, 0.0, A, J)
-        down = transition_phases(v_p, 0.0, v1, a1, A, J)
-        return up, down, advance(v0, a0, up)[0] + advance(v_p, 0.0, down)[0]
+    def distance_mm(v_p: float) -> float:
+        up = _advance_steps(v0, a0, _transition_steps(v0, a0, v_p, 0.0, A, J))[0]
+        return up + _advance_steps(v_p, 0.0, _transition_steps(v_p, 0.0, v1, a1, A, J))[0]
 
     low = max(settle_speed(v0, a0, J), settle_speed(v1, -a1, J), 0.0)
     top = max(v_cap, low)
-    up, down, d = pieces(top)
-    if d <= L:
-        return _with_cruise(up, down, top, L - d), top
-    up, down, d = pieces(low)
-    if d > L:
-        return None, low
-    v_p = _regula_falsi(
-        lambda x: pieces(x)[2] - L, low, d - L, top, pieces(top)[2] - L, PLATEAU_RTOL * L
-    )
-    up, down, d = pieces(v_p)
-    return _with_cruise(up, down, v_p, L - d), v_p
-
-
-def _with_cruise(up: list[Phase], down: list[Phase], v_p: float, rest_mm: float) -> list[Phase]:
-    cruise = [Phase(rest_mm / v_p, 0.0)] if rest_mm > 0.0 and v_p > 0.0 else []
-    return [*up, *cruise, *down]
+    d_top = distance_mm(top)
+    if d_top <= L:
+        v_p = top
+    else:
+        d_low = distance_mm(low)
+        if d_low > L:
+            return None, low
+        v_p = _regula_falsi(
+            lambda x: distance_mm(x) - L, low, d_low - L, top, d_top - L, PLATEAU_RTOL * L
+        )
+    up = _transition_steps(v0, a0, v_p, 0.0, A, J)
+    down = _transition_steps(v_p, 0.0, v1, a1, A, J)
+    rest_mm = L - (_advance_steps(v0, a0, up)[0] + _advance_steps(v_p, 0.0, down)[0])
+    cruise = [(rest_mm / v_p, 0.0)] if rest_mm > 0.0 and v_p > 0.0 else []
+    return [*up, *cruise, *down], v_p
 
 
 @functools.lru_cache(maxsize=CACHE_SIZE)
