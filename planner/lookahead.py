@@ -50,6 +50,7 @@ from planner.window import (
     MIN_POINT_GAP_MM,
     PlanLimits,
     SegmentPlan,
+    SegmentPlans,
     Window,
     segment_plan,
     sensitive_points,
@@ -123,6 +124,7 @@ def plan_segments(
     braking_end_mm_s: float | None = None,
     refined: RefinedPoints | None = None,
     warm_start: bool = False,
+    plans: SegmentPlans | None = None,
 ) -> Iterator[list[SegmentPlan]]:
     """Released stretches of the motion from the start state to rest, in order, in the groups
     that each window releases.
@@ -135,7 +137,8 @@ def plan_segments(
 
     Each refined window is remembered in ``refined`` when given; with ``warm_start`` its
     points seed the windows first (:mod:`planner.warmstart`). The first window is shorter
-    (:data:`FIRST_WINDOW_PERIODS`), so that the first stretch comes sooner.
+    (:data:`FIRST_WINDOW_PERIODS`), so that the first stretch comes sooner. The windows share
+    the segment plans of ``plans`` when given.
     """
     A, J = lim.A, lim.J
     s, v = s_start, v_start
@@ -184,7 +187,7 @@ def plan_segments(
             fv.append(False)
         else:
             cap[-1] = 0.0
-        w = Window(pts, cap, fv)
+        w = Window(pts, cap, fv, None if plans is None else plans.for_limits(lim))
         initial_s = frozenset(w.s)
         if refined is not None and warm_start:
             refined.seed(w, lim.vmax_mm_s)

@@ -7,8 +7,9 @@ override, resume), controlled stop on the path (feed hold), exact landing on the
 A :class:`Path` holds what is shared by every plan of a curve: the arc-length table and the
 feed-limit envelope, both built lazily per chunk of knot spans as the windows reach them, so
 preparing a Path is cheap and the first block comes as fast on a long curve as on a short one;
-and the points refinement added, which re-plans from a motion state start from
-(:mod:`planner.warmstart`). :func:`stream_setpoints` plans a window ahead
+the points refinement added, which re-plans from a motion state start from
+(:mod:`planner.warmstart`); and the segment shapes planned so far
+(:class:`planner.window.SegmentPlans`). :func:`stream_setpoints` plans a window ahead
 (:mod:`planner.lookahead`), samples the released closed-form motion every period (vectorised,
 no loop per period) and turns arc length into curve parameters (:mod:`planner.interpolator`).
 
@@ -43,6 +44,7 @@ from planner.nurbs import NurbsCurve
 from planner.profiles import Phase, PhaseTrain
 from planner.types import Limits, MotionState, SetpointBlock
 from planner.warmstart import RefinedPoints
+from planner.window import SegmentPlans
 
 #: Relative tolerance when deciding that a time falls on a period boundary.
 _TIME_EPS = 1e-9
@@ -80,6 +82,8 @@ class Path:
         self.envelope = FeedEnvelope(curve, self.arc, limits, self.period_s)
         self.refined = RefinedPoints()
         """What refinement found in earlier plans: re-plans start from it."""
+        self.segment_plans = SegmentPlans()
+        """Segment shapes planned so far, shared by the windows of every plan."""
 
     @property
     def length_mm(self) -> float:
@@ -244,6 +248,7 @@ def _planned_rows(
         braking_end_mm_s=braking_end_mm_s,
         refined=path.refined,
         warm_start=not fresh,
+        plans=path.segment_plans,
     )
     t, s, v, a = 0.0, state.s_mm, state.v_mm_s, state.a_mm_s2
     k_next = k_end = 0 if fresh else 1

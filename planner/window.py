@@ -74,6 +74,34 @@ class SegmentPlan:
     a_end_mm_s2: float = 0.0
 
 
+_Plans = dict[tuple, "tuple[tuple[Phase, ...], float] | None"]
+
+
+class SegmentPlans:
+    """Planned phases of segment shapes, shared by the windows of a path's plans.
+
+    A shape's plan depends on its key (:meth:`Window.key`) and the plan's limits alone, so the
+    windows of every plan of one path with the same limits share one table. Consecutive windows
+    overlap, and a re-plan from a motion state (a feed override, a resume) meets again most
+    shapes that earlier plans of the stretch met: on the bench's re-plans the median first
+    block of a cusped curve drops from 3.8 to 3.4 ms and of a curve with loops from 8.4 to
+    7.4 ms. Bounded: the tables are emptied when they hold ``max_shapes`` shapes together.
+    """
+
+    def __init__(self, max_shapes: int = 8192) -> None:
+        self.max_shapes = max_shapes
+        self._by_limits: dict[PlanLimits, _Plans] = {}
+
+    def __len__(self) -> int:
+        return sum(len(plans) for plans in self._by_limits.values())
+
+    def for_limits(self, lim: PlanLimits) -> _Plans:
+        """The table of plans with limits ``lim`` (for the next window)."""
+        if len(self) >= self.max_shapes:
+            self._by_limits.clear()
+        return self._by_limits.setdefault(lim, {})
+
+
 class Window:
     """Sensitive points of one look-ahead window and the refinement state of its segments.
 
@@ -84,7 +112,13 @@ class Window:
     point the scan cannot honour falls back to zero acceleration under ``flat_cap``.
     """
 
-    def __init__(self, s: list[float], cap: list[float], fv_plan: list[bool]) -> None:
+    def __init__(
+        self,
+        s: list[float],
+        cap: list[float],
+        fv_plan: list[bool],
+        plans: _Plans | None = None,
+    ) -> None:
         self.s = s
         self.cap = cap
         self.fv_plan = fv_plan  # per segment: region of frequent speed change (F_v_plan = 1)
@@ -94,8 +128,9 @@ class Window:
         self.peak_cap = [math.inf] * (len(s) - 1)
         self.cosine = [0] * (len(s) - 1)  # 0: S-curve, 1: cosine, 2: cosine rejected
         self.braking = False  # the first segment brakes from the start state (brake_first)
-        # Planned phases and top feed of each segment shape met so far (see key).
-        self.plans: dict[tuple, tuple[tuple[Phase, ...], float] | None] = {}
+        # Planned phases and top feed of each segment shape met so far (see key), in this window
+        # or, given ``plans`` (:meth:`SegmentPlans.for_limits`), in any with the same limits.
+        self.plans: _Plans = {} if plans is None else plans
 
     def key(self, k: int, v: list[float]) -> tuple:
         """What segment k's plan depends on: its ends, end states, peak cap and profile kind."""

@@ -26,7 +26,14 @@ from planner.stream import (
     stream_setpoints,
 )
 from planner.types import Limits, MotionState, SetpointBlock
-from planner.window import PlanLimits, Window, passes, segment_plan, sensitive_points
+from planner.window import (
+    PlanLimits,
+    SegmentPlans,
+    Window,
+    passes,
+    segment_plan,
+    sensitive_points,
+)
 
 T = 0.004
 LIMITS = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-3)
@@ -356,6 +363,29 @@ def test_a_first_block_evaluates_the_curve_for_its_own_rows_alone(monkeypatch):
     line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [1000.0, 0.0]], [0, 0, 1, 1])
     block = next(stream_setpoints(Path(line, LIMITS, T), LIMITS, T, block_periods=16))
     assert len(block) == 16 and evaluated_rows == [16]
+
+
+def test_windows_share_segment_plans_without_changing_the_motion():
+    curve = long_curve(300, turn_rad=0.4)
+    slower = LIMITS.with_feed_override(0.8)
+    replans = []
+    for shared in (True, False):
+        path = Path(curve, LIMITS, T)
+        start = plan_setpoints(path, LIMITS, T).state(400)
+        assert len(path.segment_plans) > 0
+        if not shared:
+            path.segment_plans = SegmentPlans()
+        replans.append(plan_setpoints(path, slower, T, start=start))
+    assert np.array_equal(replans[0].s_mm, replans[1].s_mm)
+    assert np.array_equal(replans[0].position_mm, replans[1].position_mm)
+
+
+def test_shared_segment_plans_are_bounded():
+    plans = SegmentPlans(max_shapes=3)
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    table = plans.for_limits(lim)
+    table.update({(k,): None for k in range(3)})
+    assert plans.for_limits(lim) == {} and len(plans) == 0
 
 
 def test_the_motion_does_not_depend_on_the_block_size():
