@@ -47,7 +47,8 @@ class RefinedPoint:
 
 
 class RefinedPoints:
-    """The points refinement added in the latest plan of each stretch of a path, in order of s."""
+    """The points refinement added in the latest plan of each stretch of a path (and in earlier
+    ones, above that plan's vmax), in order of s."""
 
     def __init__(self) -> None:
         self._s: list[float] = []
@@ -58,14 +59,23 @@ class RefinedPoints:
 
     def remember(self, w: Window, initial_s: Collection[float], vmax_mm_s: float) -> None:
         """Replace what is known of the window's stretch by the points refinement added to it
-        (those not in ``initial_s``, the window's points before refinement)."""
+        (those not in ``initial_s``, the window's points before refinement).
+
+        Points known there that this plan would not be offered (at or above
+        :data:`VMAX_FRACTION` of its vmax) are kept: a plan at a lower feed override tells
+        nothing of the stretch above its vmax, and overrides that go down and up again would
+        otherwise leave the faster re-plans without their points."""
         lo = bisect.bisect_left(self._s, w.s[0])
         hi = bisect.bisect_right(self._s, w.s[-1])
-        points = [
+        added = [
             RefinedPoint(w.s[i], w.cap[i], w.acc[i], w.pinned[i], w.flat_cap[i], vmax_mm_s)
             for i in range(1, len(w.s) - 1)
             if w.s[i] not in initial_s
         ]
+        unseen = [
+            point for point in self._points[lo:hi] if point.cap_mm_s >= VMAX_FRACTION * vmax_mm_s
+        ]
+        points = sorted(added + unseen, key=lambda point: point.s_mm)
         self._s[lo:hi] = [point.s_mm for point in points]
         self._points[lo:hi] = points
 

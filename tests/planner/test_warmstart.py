@@ -74,3 +74,18 @@ def test_points_at_the_vmax_of_either_plan_are_not_offered():
         seeded = Window([0.0, 10.0], [0.0, 0.0], [False])
         memory.seed(seeded, vmax)
         assert seeded.s[1:-1] == kept
+
+
+def test_a_plan_below_a_point_keeps_it_and_one_that_sees_it_replaces_it():
+    memory = RefinedPoints()
+    refined = Window([0.0, 10.0], [0.0, 0.0], [False])
+    refined.insert(0, 3.0, 50.0)
+    memory.remember(refined, {0.0, 10.0}, vmax_mm_s=100.0)
+    # A plan of the stretch at 40 % refines nothing there: the point above its vmax stays.
+    memory.remember(Window([0.0, 10.0], [0.0, 0.0], [False]), {0.0, 10.0}, vmax_mm_s=40.0)
+    seeded = Window([0.0, 10.0], [0.0, 0.0], [False])
+    memory.seed(seeded, 100.0)
+    assert seeded.s[1:-1] == [3.0]
+    # A plan that could have used it and found no need replaces it.
+    memory.remember(Window([0.0, 10.0], [0.0, 0.0], [False]), {0.0, 10.0}, vmax_mm_s=100.0)
+    assert len(memory) == 0
