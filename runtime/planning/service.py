@@ -12,11 +12,11 @@ returns, so the process loop stays responsive to the cycle's requests:
   other ring from the row after it, and offered; the cycle accepts it if it has not reached
   that row, else it is made again further ahead. A first try starts from the row the cycle
   takes next (:attr:`PlannerService.splice_lead_periods`): to its first block, re-planning costs
-  1.5-5 ms on the paper's curve and up to 20 ms where the window ahead holds cusps or tight
-  loops (the path's earlier plans seed it, :mod:`planner.warmstart`), so most tries are in
-  time. Starting each try as far ahead as the last one took was tried: a slow splice then
-  delayed the fast ones after it, and 41 % of the cycle bench's override changes came within
-  2 periods, against 80 % now.
+  1.5-3 ms on the paper's curve (rarely up to 5) and up to 20 ms where the window ahead holds
+  cusps or tight loops (the path's earlier plans seed it, :mod:`planner.warmstart`), so most
+  tries are in time. Starting each try as far ahead as the last one took was tried: a slow
+  splice then delayed the fast ones after it, and 41 % of the cycle bench's override changes
+  came within 2 periods, against about 95 % now.
   A splice from a row that brakes brakes at once, as hard as the limits allow, to the feed the
   old rows' braking comes to (:func:`planner.stream.braking_end_from_rows`): never faster on
   the path than that braking, which the curve ahead needs. One braking to rest (a sharp
