@@ -233,8 +233,9 @@ def _speed_plateau(
     Returns the (duration, jerk) steps (None if even the lowest plateau is too long) and v_p."""
 
     def distance_mm(v_p: float) -> float:
-        up = _advance_steps(v0, a0, _transition_steps(v0, a0, v_p, 0.0, A, J))[0]
-        return up + _advance_steps(v_p, 0.0, _transition_steps(v_p, 0.0, v1, a1, A, J))[0]
+        return transition_distance_mm(v0, a0, v_p, 0.0, A, J) + transition_distance_mm(
+            v_p, 0.0, v1, a1, A, J
+        )
 
     low = max(settle_speed(v0, a0, J), settle_speed(v1, -a1, J), 0.0)
     top = max(v_cap, low)
@@ -250,7 +251,7 @@ def _speed_plateau(
         )
     up = _transition_steps(v0, a0, v_p, 0.0, A, J)
     down = _transition_steps(v_p, 0.0, v1, a1, A, J)
-    rest_mm = L - (_advance_steps(v0, a0, up)[0] + _advance_steps(v_p, 0.0, down)[0])
+    rest_mm = L - distance_mm(v_p)
     cruise = [(rest_mm / v_p, 0.0)] if rest_mm > 0.0 and v_p > 0.0 else []
     return [*up, *cruise, *down], v_p
 
