@@ -255,6 +255,20 @@ def test_statistics_fields_and_reset() -> None:
     assert task.lateness_percentiles() == {"p50": 0.0, "p99": 0.0, "p99.9": 0.0, "max": 0.0}
 
 
+def test_a_step_longer_than_the_period_is_logged_on_each_new_maximum(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="runtime.scheduler")
+    run_fake(7, {1: 0.5 * PERIOD_S, 2: 1.5 * PERIOD_S, 4: 1.25 * PERIOD_S, 5: 2.5 * PERIOD_S})
+    lines = [r.getMessage() for r in caplog.records if "longest step" in r.getMessage()]
+    # The fake clock moves while the step works, not its CPU time: the CPU share is ~0.
+    assert len(lines) == 2
+    assert lines[0].startswith(
+        f"cyclic task cyclic: longest step so far, {1.5 * PERIOD_S * 1e3:.2f} ms (0."
+    )
+    assert f"{2.5 * PERIOD_S * 1e3:.2f} ms" in lines[1]
+
+
 def test_statistics_fast_inside_the_step_sees_this_cycle() -> None:
     seen: list[tuple[int, int]] = []
     task: CyclicTask
