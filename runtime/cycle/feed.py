@@ -358,7 +358,8 @@ class SetpointFeed:
         self._set_current(ring, row)
         self._hold_row = row
         self._next_row = row + 1
-        if ring.flags[ring.slot(row)] & RowFlag.LAST_OF_JOB:
+        # int() first: a numpy scalar & an IntEnum takes numpy's slow path (~13 µs).
+        if int(ring.flags[ring.slot(row)]) & RowFlag.LAST_OF_JOB:
             self._cancel_job()
             self.mode = FeedMode.IDLE
             return FeedEvent.FINISHED
