@@ -29,7 +29,7 @@ jerk.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from planner.arclength import ArcLengthTable
 from planner.checker import Checker
@@ -125,6 +125,7 @@ def plan_segments(
     refined: RefinedPoints | None = None,
     warm_start: bool = False,
     plans: SegmentPlans | None = None,
+    between_rounds: Callable[[], None] | None = None,
 ) -> Iterator[list[SegmentPlan]]:
     """Released stretches of the motion from the start state to rest, in order, in the groups
     that each window releases.
@@ -138,7 +139,8 @@ def plan_segments(
     Each refined window is remembered in ``refined`` when given; with ``warm_start`` its
     points seed the windows first (:mod:`planner.warmstart`). The first window is shorter
     (:data:`FIRST_WINDOW_PERIODS`), so that the first stretch comes sooner. The windows share
-    the segment plans of ``plans`` when given.
+    the segment plans of ``plans`` when given. ``between_rounds`` is called between the
+    refinement rounds of each window (:func:`planner.refine.refine`).
     """
     A, J = lim.A, lim.J
     s, v = s_start, v_start
@@ -192,7 +194,7 @@ def plan_segments(
         if refined is not None and warm_start:
             refined.seed(w, lim.vmax_mm_s)
         checker = Checker(s_env, v_env, lim)
-        v_plan = refine(w, checker, v, lim)
+        v_plan = refine(w, checker, v, lim, between_rounds)
         if refined is not None:
             refined.remember(w, initial_s, lim.vmax_mm_s)
         if final:

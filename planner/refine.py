@@ -22,6 +22,7 @@ Units: s in mm, feeds mm/s. Pure computation; not thread-safe (it edits the wind
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 from planner.checker import CHECK_SLACK, Checker
 from planner.envelope import MIN_FEED_MM_S
@@ -52,7 +53,13 @@ PIN_ACCEL_FRACTION = 0.9
 HOLD_SLOWDOWN = 0.02
 
 
-def refine(w: Window, checker: Checker, v_start: float, lim: PlanLimits) -> list[float]:
+def refine(
+    w: Window,
+    checker: Checker,
+    v_start: float,
+    lim: PlanLimits,
+    between_rounds: Callable[[], None] | None = None,
+) -> list[float]:
     """Refine the window until every segment keeps under the feed limit; returns the speeds.
 
     Each round checks every segment (last to first, so that splits do not shift the rest) and
@@ -60,6 +67,9 @@ def refine(w: Window, checker: Checker, v_start: float, lim: PlanLimits) -> list
     again (its jerk depends on both end speeds, which flattening may change) and the failing
     segments are flattened to the lowest limit they span, which always holds: lowering the end
     speeds of an S-curve segment never raises it anywhere.
+
+    ``between_rounds`` is called after each round: a caller planning ahead in the background
+    may do urgent work there (of its own, never with this plan).
     """
     verdicts: dict[tuple, tuple[float, float] | None] = {}
     v = w.speeds(v_start, lim)
@@ -82,6 +92,8 @@ def refine(w: Window, checker: Checker, v_start: float, lim: PlanLimits) -> list
                 else:
                     changed |= _repair(w, k, v, bad, checker, lim)
             v = w.speeds(v_start, lim)
+            if between_rounds is not None:
+                between_rounds()
             if not changed or (not flatten and len(w.s) > MAX_WINDOW_POINTS):
                 break
     return v

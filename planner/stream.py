@@ -30,7 +30,7 @@ earlier plan's braking end (:func:`braking_end_from_rows`).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -121,6 +121,7 @@ def stream_setpoints(
     update: str = "corrected",
     block_periods: int = 256,
     braking_end_mm_s: float | None = None,
+    between_rounds: Callable[[], None] | None = None,
 ) -> Iterator[SetpointBlock]:
     """Setpoints from ``start`` to the curve end (or to rest with ``stop``), block by block.
 
@@ -137,6 +138,9 @@ def stream_setpoints(
     :param lookahead: False gives the paper's comparison case, eq. (4) alone each period.
     :param update: parameter update, ``"corrected"`` or ``"taylor2"`` (eq. (2)).
     :param block_periods: rows per block (the last block may be shorter).
+    :param between_rounds: called between the refinement rounds of the look-ahead's windows:
+        a caller planning ahead may do urgent work of its own there, without waiting for the
+        block (it must not use this generator meanwhile).
     :raises ValueError: for bad arguments (named), or limits the path was not prepared for.
     """
     path.check(limits, period_s)
@@ -168,6 +172,7 @@ def stream_setpoints(
             fresh=fresh,
             min_rows=block_periods,
             braking_end_mm_s=braking_end_mm_s,
+            between_rounds=between_rounds,
         )
         if lookahead
         else _adaptive_rows(path, limits, state, stop=stop, fresh=fresh)
@@ -227,6 +232,7 @@ def _planned_rows(
     fresh: bool,
     min_rows: int,
     braking_end_mm_s: float | None,
+    between_rounds: Callable[[], None] | None,
 ) -> Iterator[tuple[_Rows, bool]]:
     """(t, s, v, a, j) rows of the look-ahead plan, at least ``min_rows`` per batch until the
     last, and whether the batch ends the motion."""
@@ -249,6 +255,7 @@ def _planned_rows(
         refined=path.refined,
         warm_start=not fresh,
         plans=path.segment_plans,
+        between_rounds=between_rounds,
     )
     t, s, v, a = 0.0, state.s_mm, state.v_mm_s, state.a_mm_s2
     k_next = k_end = 0 if fresh else 1

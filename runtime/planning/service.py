@@ -23,7 +23,9 @@ returns, so the process loop stays responsive to the cycle's requests:
   corner, the approach's end) starts at that rest instead, and one in the job's final braking
   is dropped;
 - otherwise the next block of the job, up to :attr:`PlannerService.buffer_high_periods` rows
-  ahead of the cycle.
+  ahead of the cycle. A block that needs a new window of the look-ahead may take up to 10 ms
+  on a hard stretch: an override change that comes meanwhile is spliced between the window's
+  refinement rounds (:meth:`PlannerService._between_rounds`), not after the block.
 
 Failures (a program file gone, a curve the planner rejects) are reported for the job; the cycle
 turns them into a fault and stops on the rows it has.
@@ -37,7 +39,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,6 +130,9 @@ class PlannerService:
         """Periods the cycle went on while the last splice was planned."""
         self._seen = 0
         self._request_version = -1
+        self._extending: _Job | None = None
+        """The job whose next block :meth:`_extend` is planning (its stream is running)."""
+        self._splicing_between_rounds = False
         # A restarted planner goes on numbering offers after its predecessor's: the cycle
         # ignores an offer whose number it has answered already.
         previous = shared.planner_reports.latest() or PlannerReport()
@@ -159,18 +164,58 @@ class PlannerService:
         job = self._job
         if job is None:
             return False
+        if job.offer is not None:
+            return self._guarded(job, lambda: self._await_answer(job) or self._extend_offered(job))
+        if job.splice_override is not None and self._cycle_reads(job.ring):
+            return self._guarded(job, lambda: self._splice(job))
+        return self._guarded(job, lambda: self._extend(job))
+
+    def _guarded(self, job: _Job, work: Callable[[], bool]) -> bool:
+        """Run a unit of work on ``job``; a failure fails the job (reported to the cycle)."""
         try:
-            if job.offer is not None:
-                return self._await_answer(job) or self._extend_offered(job)
-            if job.splice_override is not None and self._cycle_reads(job.ring):
-                return self._splice(job)
-            return self._extend(job)
+            return work()
         except PlannerError as exc:
             self._fail(job, f"planner: {exc}")
         except Exception as exc:
             logger.exception("planner: job %d failed", job.job)
             self._fail(job, f"planner failed: {exc!r}")
         return True
+
+    def _between_rounds(self) -> None:
+        """Between the refinement rounds of a block :meth:`_extend` plans ahead: an override
+        change for that job is spliced now, not once the block is done (a window on a hard
+        stretch of a curve takes up to 10 ms, more than two periods).
+
+        Other requests wait for the block: they replace or end the job it belongs to. So does
+        a splice that needs more of the old plan first (:meth:`_extend_for_splice`), or one
+        while another waits for the cycle's answer.
+        """
+        job = self._extending
+        if job is None or job is not self._job or self._splicing_between_rounds:
+            return
+        requests = self._shared.planner_requests
+        version = requests.version
+        if version == self._request_version:
+            return
+        request = requests.latest()
+        if (
+            request is None
+            or request.seq == self._seen
+            or request.kind is not PlanRequestKind.CHANGE_LIMITS
+            or request.job != job.job
+        ):
+            return
+        self._request_version = version
+        self._seen = request.seq
+        self._handle(request)
+        self._publish()
+        if job.offer is not None or not self._cycle_reads(job.ring):
+            return
+        self._splicing_between_rounds = True
+        try:
+            self._guarded(job, lambda: self._splice(job))
+        finally:
+            self._splicing_between_rounds = False
 
     # -- requests ----------------------------------------------------------------------------
 
@@ -303,7 +348,11 @@ class PlannerService:
         ahead = ring.write_count - (cycle.next_row if cycle.job == job.job else 0)
         if ahead >= self.buffer_high_periods or ring.room() < job.block_periods:
             return False
-        self._write_block(job, ring)
+        self._extending = job
+        try:
+            self._write_block(job, ring)
+        finally:
+            self._extending = None
         return True
 
     def _write_block(self, job: _Job, ring: SetpointRing) -> None:
@@ -332,6 +381,7 @@ class PlannerService:
             lookahead=self._lookahead,
             update=self._update,
             block_periods=job.block_periods,
+            between_rounds=self._between_rounds,
         )
 
     def _append(self, job: _Job, ring: SetpointRing, block: SetpointBlock) -> None:
@@ -439,8 +489,9 @@ class PlannerService:
         return math.ceil(braking.duration_s / self._period_s)
 
     def _extend_for_splice(self, job: _Job, ring: SetpointRing) -> bool:
-        """The splice row is not planned yet: the old plan goes on meanwhile."""
-        if job.done or ring.room() < job.block_periods:
+        """The splice row is not planned yet: the old plan goes on meanwhile (not while its
+        stream is running: between the rounds of its next block)."""
+        if job.done or ring.room() < job.block_periods or self._extending is job:
             return False
         self._write_block(job, ring)
         return True

@@ -300,9 +300,9 @@ def test_first_block_of_a_long_curve_is_fast():
 def test_a_first_block_waits_for_one_short_window(monkeypatch):
     window_ends = []
 
-    def recording_refine(w, checker, v_start, lim):
+    def recording_refine(w, checker, v_start, lim, between_rounds=None):
         window_ends.append(w.s[-1])
-        return refine(w, checker, v_start, lim)
+        return refine(w, checker, v_start, lim, between_rounds)
 
     monkeypatch.setattr(lookahead, "refine", recording_refine)
     path = Path(long_curve(2000), LIMITS, T)
@@ -335,9 +335,9 @@ def test_a_first_block_from_above_vmax_waits_for_one_window(monkeypatch):
     # enough of the new feed for a block.
     windows = []
 
-    def recording_refine(w, checker, v_start, lim):
+    def recording_refine(w, checker, v_start, lim, between_rounds=None):
         windows.append((w.s[0], w.s[-1]))
-        return refine(w, checker, v_start, lim)
+        return refine(w, checker, v_start, lim, between_rounds)
 
     monkeypatch.setattr(lookahead, "refine", recording_refine)
     line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [1000.0, 0.0]], [0, 0, 1, 1])

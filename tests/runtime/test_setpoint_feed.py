@@ -16,6 +16,7 @@ import pytest
 from machine_harness import Harness
 from setpoint_checks import chord_errors, differences, realised_feed
 
+from planner import lookahead
 from planner.stream import Path as PlannerPath
 from runtime.commands import CommandCode, CommandResult
 from runtime.curves import limits_for_curve, planner_limits
@@ -305,5 +306,47 @@ def test_an_override_given_as_the_approach_brakes_to_the_program_start_applies_f
     assert h.status.stats.override_latency_periods == program_starts_at - commanded_at
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     assert max(sp.feed_mm_s for sp in h.setpoints if sp.segment == 1) <= 50.0 * (1 + 1e-9)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_an_override_given_while_a_block_is_planned_ahead_is_spliced_without_waiting_for_it(
+    h: Harness, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    extend, refine = PlannerService._extend, lookahead.refine
+    extending = False
+    offered_during_the_block: list[bool] = []
+
+    def recording_extend(self: PlannerService, job: object) -> bool:
+        nonlocal extending
+        extending = True
+        try:
+            return extend(self, job)
+        finally:
+            extending = False
+            if len(offered_during_the_block) == 1:
+                offered_during_the_block.append(self._job.offer is not None)
+
+    def refine_with_a_command(*args: object, **kwargs: object) -> list[float]:
+        if extending and not offered_during_the_block:
+            # The first window planned ahead: the operator changes the override as it starts.
+            h.post(CommandCode.SET_OVERRIDE, override_percent=60.0)
+            h.period(plan=False)
+            offered_during_the_block.append(False)
+        return refine(*args, **kwargs)
+
+    monkeypatch.setattr(PlannerService, "_extend", recording_extend)
+    monkeypatch.setattr(lookahead, "refine", refine_with_a_command)
+    # Planning 100 periods ahead (not 500: the paper's whole curve), the blocks of the
+    # look-ahead's second window are planned during the motion.
+    monkeypatch.setattr(PlannerService, "buffer_high_periods", 100)
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: len(offered_during_the_block) == 2, 500)
+    monkeypatch.undo()
+    # The splice was offered before the block the planner was planning came out.
+    assert offered_during_the_block == [False, True]
+    h.until(lambda s: s.stats.overrides_applied == 1, 20)
+    assert h.status.stats.override_latency_periods <= 2
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     check_limits(h.target_array(), VMAX)
     check_on_curve_and_end(h, h.program_under_test)
