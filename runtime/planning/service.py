@@ -323,15 +323,22 @@ class PlannerService:
         return True
 
     def _extend_offered(self, job: _Job) -> bool:
-        """While the cycle has not answered, plan on the rows offered (the cycle reads them only
-        once it accepts; refused, they are dropped): the more rows ahead at the switch, the
-        longer the planner may fall behind afterwards."""
-        offered = job.candidate or job
-        ring = self._shared.rings[offered.ring]
-        ahead = ring.write_count - ring.first_row
-        if offered.done or ahead >= self.buffer_high_periods or ring.room() < offered.block_periods:
+        """While the cycle has not answered a job's first offer, plan on the rows offered (the
+        cycle reads them only once it accepts; refused, they are dropped): the more rows ahead
+        at the start, the longer the planner may fall behind afterwards.
+
+        A splice waits for the answer instead: its rows cover its stop and
+        :data:`SPLICE_SLACK_PERIODS` of planning, the cycle answers within a period or two, and
+        its next block is then planned by :meth:`_extend`, where an override change given
+        meanwhile is spliced between the refinement rounds (here it would wait for the block).
+        """
+        if job.candidate is not None:
             return False
-        self._write_block(offered, ring)
+        ring = self._shared.rings[job.ring]
+        ahead = ring.write_count - ring.first_row
+        if job.done or ahead >= self.buffer_high_periods or ring.room() < job.block_periods:
+            return False
+        self._write_block(job, ring)
         return True
 
     def _cycle_reads(self, ring: int) -> bool:
