@@ -350,3 +350,43 @@ def test_an_override_given_while_a_block_is_planned_ahead_is_spliced_without_wai
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     check_limits(h.target_array(), VMAX)
     check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_a_splice_that_needs_more_of_the_old_plan_waits_for_the_block_being_planned(
+    h: Harness, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its row is beyond the rows planned: the old plan must go on first, and its stream is the
+    one running. The splice is made after the block, from the rows the block adds."""
+    extend, refine = PlannerService._extend, lookahead.refine
+    extending = False
+    commanded_at: list[int] = []
+
+    def recording_extend(self: PlannerService, job: object) -> bool:
+        nonlocal extending
+        extending = True
+        try:
+            return extend(self, job)
+        finally:
+            extending = False
+
+    def refine_with_a_command(*args: object, **kwargs: object) -> list[float]:
+        if extending and not commanded_at:
+            h.post(CommandCode.SET_OVERRIDE, override_percent=60.0)
+            h.period(plan=False)
+            commanded_at.append(len(h.setpoints))
+        return refine(*args, **kwargs)
+
+    monkeypatch.setattr(PlannerService, "_extend", recording_extend)
+    monkeypatch.setattr(lookahead, "refine", refine_with_a_command)
+    monkeypatch.setattr(PlannerService, "buffer_high_periods", 100)
+    # The splice re-plans from 150 rows ahead of the cycle: beyond the 100 planned.
+    monkeypatch.setattr(PlannerService, "splice_lead_periods", 150)
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: bool(commanded_at), 500)
+    h.until(lambda s: s.stats.overrides_applied == 1, 400)
+    assert h.status.fault is None
+    assert h.status.stats.override_latency_periods >= 150
+    monkeypatch.undo()
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
