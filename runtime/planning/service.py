@@ -150,17 +150,10 @@ class PlannerService:
     def poll(self) -> bool:
         """One unit of work; False when there was nothing to do (the caller may sleep briefly)."""
         self._shared.planner_reports.heartbeat.value += 1
-        requests = self._shared.planner_requests
-        version = requests.version  # read before the request: a newer one shows next poll
-        if version != self._request_version:
-            request = requests.latest()
-            if request is not None:  # else caught mid-write: read it again next poll
-                self._request_version = version
-                if request.seq != self._seen:
-                    self._seen = request.seq
-                    self._handle(request)
-                    self._publish()
-                    return True
+        unseen = self._unseen_request()
+        if unseen is not None:
+            self._take(*unseen)
+            return True
         job = self._job
         if job is None:
             return False
@@ -193,22 +186,13 @@ class PlannerService:
         job = self._extending
         if job is None or job is not self._job or self._splicing_between_rounds:
             return
-        requests = self._shared.planner_requests
-        version = requests.version
-        if version == self._request_version:
+        unseen = self._unseen_request()
+        if unseen is None:
             return
-        request = requests.latest()
-        if (
-            request is None
-            or request.seq == self._seen
-            or request.kind is not PlanRequestKind.CHANGE_LIMITS
-            or request.job != job.job
-        ):
+        request = unseen[1]
+        if request.kind is not PlanRequestKind.CHANGE_LIMITS or request.job != job.job:
             return
-        self._request_version = version
-        self._seen = request.seq
-        self._handle(request)
-        self._publish()
+        self._take(*unseen)
         if job.offer is not None or not self._cycle_reads(job.ring):
             return
         self._splicing_between_rounds = True
@@ -218,6 +202,27 @@ class PlannerService:
             self._splicing_between_rounds = False
 
     # -- requests ----------------------------------------------------------------------------
+
+    def _unseen_request(self) -> tuple[int, PlanRequest] | None:
+        """The cycle's newest request and its version, when not handled yet."""
+        requests = self._shared.planner_requests
+        version = requests.version  # read before the request: a newer one shows next poll
+        if version == self._request_version:
+            return None
+        request = requests.latest()
+        if request is None:  # caught mid-write: read it again next poll
+            return None
+        if request.seq == self._seen:
+            self._request_version = version
+            return None
+        return version, request
+
+    def _take(self, version: int, request: PlanRequest) -> None:
+        """Handle a request :meth:`_unseen_request` gave, and report it handled."""
+        self._request_version = version
+        self._seen = request.seq
+        self._handle(request)
+        self._publish()
 
     def _handle(self, request: PlanRequest) -> None:
         self._report = PlannerReport(

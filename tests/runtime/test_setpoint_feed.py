@@ -310,9 +310,11 @@ def test_an_override_given_as_the_approach_brakes_to_the_program_start_applies_f
     check_on_curve_and_end(h, h.program_under_test)
 
 
-def test_an_override_given_while_a_block_is_planned_ahead_is_spliced_without_waiting_for_it(
-    h: Harness, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def override_as_a_block_is_planned_ahead(h: Harness, monkeypatch: pytest.MonkeyPatch) -> list[bool]:
+    """Plan 100 periods ahead (not 500: the paper's whole curve), so that the blocks of the
+    look-ahead's second window are planned during the motion; the operator sets a 60 % override
+    as the first refinement of such a block starts. Returns False once the command is given,
+    then whether the planner had offered a splice when that block came out."""
     extend, refine = PlannerService._extend, lookahead.refine
     extending = False
     offered_during_the_block: list[bool] = []
@@ -325,11 +327,12 @@ def test_an_override_given_while_a_block_is_planned_ahead_is_spliced_without_wai
         finally:
             extending = False
             if len(offered_during_the_block) == 1:
-                offered_during_the_block.append(self._job.offer is not None)
+                offered_during_the_block.append(
+                    self._job is not None and self._job.offer is not None
+                )
 
     def refine_with_a_command(*args: object, **kwargs: object) -> list[float]:
         if extending and not offered_during_the_block:
-            # The first window planned ahead: the operator changes the override as it starts.
             h.post(CommandCode.SET_OVERRIDE, override_percent=60.0)
             h.period(plan=False)
             offered_during_the_block.append(False)
@@ -337,9 +340,14 @@ def test_an_override_given_while_a_block_is_planned_ahead_is_spliced_without_wai
 
     monkeypatch.setattr(PlannerService, "_extend", recording_extend)
     monkeypatch.setattr(lookahead, "refine", refine_with_a_command)
-    # Planning 100 periods ahead (not 500: the paper's whole curve), the blocks of the
-    # look-ahead's second window are planned during the motion.
     monkeypatch.setattr(PlannerService, "buffer_high_periods", 100)
+    return offered_during_the_block
+
+
+def test_an_override_given_while_a_block_is_planned_ahead_is_spliced_without_waiting_for_it(
+    h: Harness, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    offered_during_the_block = override_as_a_block_is_planned_ahead(h, monkeypatch)
     assert h.command(CommandCode.START) is CommandResult.DONE
     h.until(lambda s: len(offered_during_the_block) == 2, 500)
     monkeypatch.undo()
@@ -357,32 +365,12 @@ def test_a_splice_that_needs_more_of_the_old_plan_waits_for_the_block_being_plan
 ) -> None:
     """Its row is beyond the rows planned: the old plan must go on first, and its stream is the
     one running. The splice is made after the block, from the rows the block adds."""
-    extend, refine = PlannerService._extend, lookahead.refine
-    extending = False
-    commanded_at: list[int] = []
-
-    def recording_extend(self: PlannerService, job: object) -> bool:
-        nonlocal extending
-        extending = True
-        try:
-            return extend(self, job)
-        finally:
-            extending = False
-
-    def refine_with_a_command(*args: object, **kwargs: object) -> list[float]:
-        if extending and not commanded_at:
-            h.post(CommandCode.SET_OVERRIDE, override_percent=60.0)
-            h.period(plan=False)
-            commanded_at.append(len(h.setpoints))
-        return refine(*args, **kwargs)
-
-    monkeypatch.setattr(PlannerService, "_extend", recording_extend)
-    monkeypatch.setattr(lookahead, "refine", refine_with_a_command)
-    monkeypatch.setattr(PlannerService, "buffer_high_periods", 100)
+    offered_during_the_block = override_as_a_block_is_planned_ahead(h, monkeypatch)
     # The splice re-plans from 150 rows ahead of the cycle: beyond the 100 planned.
     monkeypatch.setattr(PlannerService, "splice_lead_periods", 150)
     assert h.command(CommandCode.START) is CommandResult.DONE
-    h.until(lambda s: bool(commanded_at), 500)
+    h.until(lambda s: len(offered_during_the_block) == 2, 500)
+    assert offered_during_the_block == [False, False]
     h.until(lambda s: s.stats.overrides_applied == 1, 400)
     assert h.status.fault is None
     assert h.status.stats.override_latency_periods >= 150
