@@ -418,7 +418,9 @@ class Machine:
     def _start(self) -> None:
         program = self.program
         assert program is not None
-        here = self._targets[: program.dimension]
+        # From the setpoint just taken: a program that finished this period ends on its last
+        # row, which the targets of the period before do not hold yet.
+        here = self._compose_targets()[: program.dimension]
         segments: list[SegmentSpec] = []
         approach_mm = math.dist(here, program.start_mm)
         if approach_mm > APPROACH_MIN_MM:
