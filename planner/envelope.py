@@ -5,12 +5,13 @@ Engineering 23(3), 2012, 299-304: the feed limit of eq. (4) (and the optional li
 :mod:`planner.feed`) is sampled on a grid of every knot span, the curvature maxima refined, in
 place of the paper's step-by-step pre-interpolation at vmax.
 
-Beyond the paper: each sample is lowered to the limits a period's step from it can reach (the
-dilation, exact for the piecewise-linear limit between samples), so that a step never sees a
-larger curvature than planned; sharp corners and cusps (C'(u) = 0 with a turning tangent) are
-stops (limit 0) with a grid refined towards them; the curvature maxima are located by
-a shrinking grid search of the curvature itself, so that a tip far narrower than the grid is
-planned at its own radius.
+Beyond the paper: each sample is lowered to the limits half a period's step from it can reach
+(the dilation, exact for the piecewise-linear limit between samples): a chord's deviation from
+the curve is set by the curvature around the chord's middle (to first order, L^2 kappa / 8 with
+kappa at the middle), so a step never sees a larger curvature than planned. Sharp corners and
+cusps (C'(u) = 0 with a turning tangent) are stops (limit 0) with a grid refined towards them;
+the curvature maxima are located by a shrinking grid search of the curvature itself, so that a
+tip far narrower than the grid is planned at its own radius.
 
 Units: s in mm, feeds in mm/s, u dimensionless. Chunks of ``CHUNK_SPANS`` knot spans are
 computed when a query first reaches them and the last ``CACHE_CHUNKS`` are kept, so memory does
@@ -79,11 +80,11 @@ class FeedEnvelope:
     """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
 
     Each grid sample carries the feed limit of :func:`planner.feed.geometric_feed_limit`, lowered
-    to the smallest limit, interpolated linearly between samples, within one period's step (T
-    times its own lowered limit, capped at ``MAX_OVERRIDE_RATIO`` x vmax) on either side and at
-    its grid neighbours, so that a step and the linear interpolation between samples never see
-    a larger curvature than planned. Sharp corners (feed limit 0) keep their single zero sample
-    and a grid refined towards them.
+    to the smallest limit, interpolated linearly between samples, within half a period's step
+    (T / 2 times its own lowered limit, capped at ``MAX_OVERRIDE_RATIO`` x vmax) on either side
+    and at its grid neighbours, so that a step (whose middle is half a step away) and the linear
+    interpolation between samples never see a larger curvature than planned. Sharp corners
+    (feed limit 0) keep their single zero sample and a grid refined towards them.
     """
 
     def __init__(
@@ -333,14 +334,19 @@ class FeedEnvelope:
         )
 
     def _dilated(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Lower each sample to the limits a period's step from it can reach.
+        """Lower each sample to the limits half a period's step from it can reach.
 
-        A step from s_i at feed w is w T long, so the limit f (linear between samples) at
-        distance x constrains it when x <= w T: the largest consistent w is the infimum over
-        x >= 0, ahead and behind, of max(f(s_i +- x), x / T). On each grid interval that is
-        reached at an end or where f crosses x / T; using the samples alone would leave a
-        sawtooth of spurious minima (sensitive points) wherever the limit falls steeply. A
-        corner's zero constrains nothing (the plan stops on it instead).
+        A step from s_i at feed w is w T long and its middle is w T / 2 away, so the limit f
+        (linear between samples) at distance x constrains it when x <= w T / 2: the largest
+        consistent w is the infimum over x >= 0, ahead and behind, of max(f(s_i +- x), 2 x / T).
+        On each grid interval that is reached at an end or where f crosses 2 x / T; using the
+        samples alone would leave a sawtooth of spurious minima (sensitive points) wherever the
+        limit falls steeply. A corner's zero constrains nothing (the plan stops on it instead).
+
+        Against the whole step (x <= w T), which bounds the curvature anywhere on the chord
+        rather than around its middle: the bench's curves with cusps went from 1.04-1.06 of its
+        jerk-limited reference to 1.03-1.04, with loops from 1.06-1.09 to 1.05-1.06, and the
+        largest chord error on their setpoints stayed at 0.97 delta.
         """
         if len(s) < 2:
             return v.copy()
@@ -349,34 +355,36 @@ class FeedEnvelope:
         return np.where(v > 0.0, np.minimum(v, np.minimum(ahead, behind)), 0.0)
 
     def _reachable(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """inf over x >= 0 of max(f(s_i + x), x / T) for increasing s, where it is below the
-        sample's own limit f(s_i) and the override cap."""
-        n, T = len(s), self._T
+        """inf over x >= 0 of max(f(s_i + x), 2 x / T) for increasing s, where it is
+        below the sample's own limit f(s_i) and the override cap."""
+        n, half_period_s = len(s), 0.5 * self._T
         masked = np.where(v > 0.0, v, np.inf)
-        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within a step
+        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within half a step
         # at the sample's own limit (a longer step exceeds that limit whatever it meets).
-        step_mm = T * np.minimum(v, self._vcap_mm_s)
-        reach = np.searchsorted(s, s + step_mm, side="right")
+        half_step_mm = half_period_s * np.minimum(v, self._vcap_mm_s)
+        reach = np.searchsorted(s, s + half_step_mm, side="right")
         count = np.maximum(np.minimum(reach, n - 1) - np.arange(n), 0)
         first = np.cumsum(count) - count
         i = np.repeat(np.arange(n), count)
         j = i + np.arange(i.size) - np.repeat(first, count)
         start_gap = s[j] - s[i]
         end_gap = s[j + 1] - s[i]
-        value = np.maximum(masked[j + 1], end_gap / T)
+        value = np.maximum(masked[j + 1], end_gap / half_period_s)
         h = s[j + 1] - s[j]
         with np.errstate(divide="ignore", invalid="ignore"):
             slope = (v[j + 1] - v[j]) / h
-            x = (v[j] + slope * (s[i] - s[j])) / (1.0 / T - slope)  # f(s_i + x) = x / T
+            x = (v[j] + slope * (s[i] - s[j])) / (
+                1.0 / half_period_s - slope
+            )  # f(s_i + x) = 2 x / T
         crossing = (
             (v[j] > 0.0)
             & (v[j + 1] > 0.0)
             & (h > 0.0)
-            & (slope < 1.0 / T)
+            & (slope < 1.0 / half_period_s)
             & (x >= start_gap)
             & (x <= end_gap)
         )
-        value = np.where(crossing, np.minimum(value, x / T), value)
+        value = np.where(crossing, np.minimum(value, x / half_period_s), value)
         out = np.full(n, np.inf)
         paired = count > 0
         if paired.any():

@@ -248,17 +248,17 @@ def test_a_start_too_fast_for_a_staircase_brakes_in_onesegment_plan():
 
 
 def test_envelope_dilation_is_exact_between_samples(path):
-    # A limit falling linearly, f(s) = a - b s, on an uneven grid: a step of w T from s meets
-    # f = w where a - b (s + w T) = w, so w = f(s) / (1 + b T) at every sample, a monotone
-    # envelope. The samples alone gave up to 3 % more here, and where a curved limit falls
-    # steeply a sawtooth whose teeth became sensitive points.
+    # A limit falling linearly, f(s) = a - b s, on an uneven grid: the middle of a step of w T
+    # from s meets f = w where a - b (s + w T / 2) = w, so w = f(s) / (1 + b T / 2) at every
+    # sample, a monotone envelope. The samples alone gave more here, and where a curved limit
+    # falls steeply a sawtooth whose teeth became sensitive points.
     envelope = FeedEnvelope(path.curve, path.arc, LIMITS, T)
     rng = np.random.default_rng(5)
     s = np.cumsum(rng.uniform(0.01, 0.2, 200))
     a, b = 100.0, 4.0
-    expected = (a - b * s) / (1.0 + b * T)
+    expected = (a - b * s) / (1.0 + 0.5 * b * T)
     dilated = envelope._dilated(s, a - b * s)
-    inside = s + expected * T <= s[-1]  # the step ends on the grid
+    inside = s + 0.5 * expected * T <= s[-1]  # the half step ends on the grid
     assert np.allclose(dilated[inside], expected[inside], rtol=1e-12)
     assert np.all(np.diff(dilated) <= 0.0)
 

@@ -271,7 +271,9 @@ def test_an_override_given_while_the_plan_brakes_brakes_at_once_never_faster_on_
     new += [sp for sp in h.setpoints if sp.segment == 1 and new[-1].s_mm < sp.s_mm <= braking_end_s]
     new = new[: next(k for k, sp in enumerate(new) if sp.accel_mm_s2 >= 0.0) + 1]
     new_s, new_feed = np.array([sp.s_mm for sp in new]), np.array([sp.feed_mm_s for sp in new])
-    assert (new_feed < np.interp(new_s, old_s, old_feed) - 1.0).any()  # it brakes harder
+    # It brakes harder. The old braking (99 -> 71 mm/s, a triangle of acceleration peaking at
+    # -725 mm/s^2) is itself close to the hardest the limits allow, so by up to 0.9 mm/s.
+    assert (new_feed < np.interp(new_s, old_s, old_feed) - 0.5).any()
     assert (new_feed <= np.interp(new_s, old_s, old_feed) + 1e-6).all()
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     check_limits(h.target_array(), VMAX * 1.5)
