@@ -5,10 +5,12 @@ Engineering 23(3), 2012, 299-304: the feed limit of eq. (4) (and the optional li
 :mod:`planner.feed`) is sampled on a grid of every knot span, the curvature maxima refined, in
 place of the paper's step-by-step pre-interpolation at vmax.
 
-Beyond the paper: each sample is lowered to the limits half a period's step from it can reach
-(the dilation, exact for the piecewise-linear limit between samples): a chord's deviation from
-the curve is set by the curvature around the chord's middle (to first order, L^2 kappa / 8 with
-kappa at the middle), so a step never sees a larger curvature than planned. Sharp corners and
+Beyond the paper: each sample is lowered to the limits a step from it can reach (the dilation,
+exact for the piecewise-linear limit between samples, and never across a stop): the chord-error
+feed to those within half a period's step, since a chord's deviation from the curve is set by
+the curvature around its middle (to first order, L^2 kappa / 8 with kappa at the middle), and
+the other limits (the chord-deficit jerk, with its jumps at knots, and the accelerations) to
+those within a whole step, so a step never sees a larger curvature than planned. Sharp corners and
 cusps (C'(u) = 0 with a turning tangent) are stops (limit 0) with a grid refined towards them;
 the curvature maxima are located by a shrinking grid search of the curvature itself, so that a
 tip far narrower than the grid is planned at its own radius.
@@ -29,7 +31,7 @@ from dataclasses import replace
 import numpy as np
 
 from planner.arclength import ArcLengthTable
-from planner.feed import geometric_feed_limit
+from planner.feed import curvature_jump_feed, geometric_feed_limits, singular_floor_feed
 from planner.nurbs import NurbsCurve
 from planner.types import Limits
 
@@ -79,12 +81,13 @@ def curvature_rises(d1: np.ndarray, d2: np.ndarray, d3: np.ndarray) -> np.ndarra
 class FeedEnvelope:
     """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
 
-    Each grid sample carries the feed limit of :func:`planner.feed.geometric_feed_limit`, lowered
-    to the smallest limit, interpolated linearly between samples, within half a period's step
-    (T / 2 times its own lowered limit, capped at ``MAX_OVERRIDE_RATIO`` x vmax) on either side
-    and at its grid neighbours, so that a step (whose middle is half a step away) and the linear
-    interpolation between samples never see a larger curvature than planned. Sharp corners
-    (feed limit 0) keep their single zero sample and a grid refined towards them.
+    Each grid sample carries the feed limit of :func:`planner.feed.geometric_feed_limits`: its
+    chord-error part lowered to the smallest, interpolated linearly between samples, within
+    half a period's step (T / 2 times its own lowered limit, capped at ``MAX_OVERRIDE_RATIO`` x
+    vmax) on either side, its other part within a whole step, and both at its grid neighbours,
+    so that a step and the linear interpolation between samples never see a larger curvature
+    than planned. Sharp corners (feed limit 0) keep their single zero sample and a grid refined
+    towards them.
     """
 
     def __init__(
@@ -168,6 +171,13 @@ class FeedEnvelope:
         hidden = np.flatnonzero(rising[: u.size - 1] & ~rising_end)
         if knot_rows.size:
             v[knot_rows] = np.minimum(v[knot_rows], v_left)
+            with np.errstate(invalid="ignore"):  # inf - inf at a corner, a stop anyway
+                jump = curvature_jump_feed(k_left, kappa[knot_rows], self._limits.jmax_mm_s3)
+            # Never below the floor where steps are short enough whatever the geometry: a jump
+            # to a near-cusp's curvature would otherwise have the motion creep there.
+            floor = singular_floor_feed(self._limits, self._T)
+            jump = np.maximum(np.nan_to_num(jump, nan=np.inf), floor)
+            v[knot_rows, 1] = np.minimum(v[knot_rows, 1], jump)
             kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
             d_right = d1[knot_rows]
             norms = np.linalg.norm(d_left, axis=1) * np.linalg.norm(d_right, axis=1)
@@ -189,14 +199,14 @@ class FeedEnvelope:
         cusps = self._cusps(u, d1)
         if cusps.size:
             # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
-            samples = self._merged(samples, [(cusps, np.zeros(cusps.size))])
-        extras.append(self._sampled(self._corner_grid(samples[0], samples[1])))
+            samples = self._merged(samples, [(cusps, np.zeros((cusps.size, 2)))])
+        extras.append(self._sampled(self._corner_grid(samples[0], samples[1].min(axis=1))))
         extras.append(self._tight_midpoints(u, v))
         u, v = self._merged(samples, extras)
         s = np.maximum.accumulate(self._arc.s_of_u(u))
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
-        v = np.where(v < MIN_FEED_MM_S, 0.0, v)
+        v[v.min(axis=1) < MIN_FEED_MM_S] = 0.0
         fresh = np.concatenate([[True], np.diff(s) > 0.0])
         starts = np.flatnonzero(fresh)
         v = np.minimum.reduceat(v, starts)
@@ -207,13 +217,15 @@ class FeedEnvelope:
         self, u: np.ndarray, *, slopes: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """kappa, v_limit, C' and C'' at u; with ``slopes``, whether the curvature rises there
-        (dkappa/du > 0) in place of C''."""
+        (dkappa/du > 0) in place of C''. v_limit has two columns: the chord-error feed and every
+        other limit (:func:`planner.feed.geometric_feed_limits`), dilated apart."""
         if u.size == 0:
             d = np.empty((0, self._curve.dimension))
-            return np.empty(0), np.empty(0), d, d
+            return np.empty(0), np.empty((0, 2)), d, d
         ders = self._curve.evaluate(u, order=3 if slopes else 2)
         d1, d2 = ders[1], ders[2]
-        kappa, v = geometric_feed_limit(d1, d2, self._planning_limits, self._T)
+        kappa, v_chord, v_other = geometric_feed_limits(d1, d2, self._planning_limits, self._T)
+        v = np.stack([v_chord, v_other], axis=1)
         return kappa, v, d1, curvature_rises(d1, d2, ders[3]) if slopes else d2
 
     def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -267,7 +279,8 @@ class FeedEnvelope:
         more than ``TIGHT_CHANGE`` of the lower end, unless that is above any feed a plan of
         this path may use. Stops (a zero limit) have a grid of their own.
         """
-        lo, hi, v_lo, v_hi = u[:-1], u[1:], v[:-1], v[1:]
+        combined = v.min(axis=1)
+        lo, hi, v_lo, v_hi = u[:-1], u[1:], combined[:-1], combined[1:]
         added = []
         for _ in range(TIGHT_LEVELS):
             low = np.minimum(v_lo, v_hi)
@@ -281,13 +294,14 @@ class FeedEnvelope:
                 break
             mid = self._sampled(0.5 * (lo[coarse] + hi[coarse]))
             added.append(mid)
+            mid_v = mid[1].min(axis=1)
             lo, hi = np.concatenate([lo[coarse], mid[0]]), np.concatenate([mid[0], hi[coarse]])
             v_lo, v_hi = (
-                np.concatenate([v_lo[coarse], mid[1]]),
-                np.concatenate([mid[1], v_hi[coarse]]),
+                np.concatenate([v_lo[coarse], mid_v]),
+                np.concatenate([mid_v, v_hi[coarse]]),
             )
         if not added:
-            return np.empty(0), np.empty(0)
+            return np.empty(0), np.empty((0, 2))
         u_added, v_added = (np.concatenate(columns) for columns in zip(*added, strict=True))
         return u_added, v_added
 
@@ -334,57 +348,80 @@ class FeedEnvelope:
         )
 
     def _dilated(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Lower each sample to the limits half a period's step from it can reach.
+        """The feed limit at each sample: its two parts (``v``'s columns) lowered to the limits
+        a step from it can reach, then the lower of them; 0 at a stop.
 
-        A step from s_i at feed w is w T long and its middle is w T / 2 away, so the limit f
-        (linear between samples) at distance x constrains it when x <= w T / 2: the largest
-        consistent w is the infimum over x >= 0, ahead and behind, of max(f(s_i +- x), 2 x / T).
-        On each grid interval that is reached at an end or where f crosses 2 x / T; using the
-        samples alone would leave a sawtooth of spurious minima (sensitive points) wherever the
-        limit falls steeply. A corner's zero constrains nothing (the plan stops on it instead).
+        A step from s_i at feed w is w T long. Its chord error is set by the curvature around
+        its middle, w T / 2 away: the chord-error feed (column 0) is lowered to the limits
+        within half a step. The chord-deficit jerk and the accelerations on the setpoints
+        (column 1) depend on the steps either side as well: those within a whole step.
 
-        Against the whole step (x <= w T), which bounds the curvature anywhere on the chord
-        rather than around its middle: the bench's curves with cusps went from 1.04-1.06 of its
-        jerk-limited reference to 1.03-1.04, with loops from 1.06-1.09 to 1.05-1.06, and the
-        largest chord error on their setpoints stayed at 0.97 delta.
+        Against the whole step for both, the bench's curves with loops went from 1.06-1.09 of
+        its jerk-limited reference to 1.05-1.06, and the largest chord error on their setpoints
+        stayed at 0.97 delta. Half a step for the chord deficit too measured 1.055 J on a tip
+        whose limit falls from 140 to 15 mm/s within two steps.
         """
+        limit = v.min(axis=1)
+        stop = limit <= 0.0
         if len(s) < 2:
-            return v.copy()
-        ahead = self._reachable(s, v)
-        behind = self._reachable(-s[::-1], v[::-1])[::-1]
-        return np.where(v > 0.0, np.minimum(v, np.minimum(ahead, behind)), 0.0)
+            return np.where(stop, 0.0, limit)
+        lowered = [
+            self._lowered(s, np.where(stop, 0.0, v[:, column]), limit, reach_s)
+            for column, reach_s in ((0, 0.5 * self._T), (1, self._T))
+        ]
+        return np.where(stop, 0.0, np.minimum(limit, np.minimum(*lowered)))
 
-    def _reachable(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """inf over x >= 0 of max(f(s_i + x), 2 x / T) for increasing s, where it is
-        below the sample's own limit f(s_i) and the override cap."""
-        n, half_period_s = len(s), 0.5 * self._T
+    def _lowered(self, s: np.ndarray, f: np.ndarray, own: np.ndarray, reach_s: float) -> np.ndarray:
+        """The largest w <= ``own`` at each sample with w <= f(s_i +- x) for every x up to
+        w ``reach_s`` (f linear between samples), or inf where nothing within reach is lower.
+
+        That is the infimum over x >= 0, ahead and behind, of max(f(s_i +- x), x / reach_s):
+        on each grid interval it is reached at an end or where f crosses x / reach_s. Using
+        the samples alone would leave a sawtooth of spurious minima (sensitive points) wherever
+        the limit falls steeply. A corner's zero constrains nothing (the plan stops on it).
+        """
+        ahead = self._reachable(s, f, own, reach_s)
+        behind = self._reachable(-s[::-1], f[::-1], own[::-1], reach_s)[::-1]
+        return np.minimum(ahead, behind)
+
+    def _reachable(
+        self, s: np.ndarray, v: np.ndarray, own: np.ndarray, reach_s: float
+    ) -> np.ndarray:
+        """inf over x >= 0 of max(f(s_i + x), x / reach_s) for increasing s, where it is below
+        the sample's own limit and the override cap."""
+        n = len(s)
         masked = np.where(v > 0.0, v, np.inf)
-        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within half a step
-        # at the sample's own limit (a longer step exceeds that limit whatever it meets).
-        half_step_mm = half_period_s * np.minimum(v, self._vcap_mm_s)
-        reach = np.searchsorted(s, s + half_step_mm, side="right")
-        count = np.maximum(np.minimum(reach, n - 1) - np.arange(n), 0)
+        # Pairs (i, j): interval [s_j, s_j+1] seen from s_i, while its start is within reach at
+        # the sample's own limit (a longer step exceeds that limit whatever it meets), and up
+        # to the next stop: the motion rests there, so no step crosses it. (Beyond it, each
+        # sample would be held to its distance from the stop over the reach, a limit that
+        # vanishes at the stop: the motion could never leave it.)
+        reach_mm = reach_s * np.minimum(own, self._vcap_mm_s)
+        reach = np.searchsorted(s, s + reach_mm, side="right")
+        stops = np.append(np.flatnonzero(v <= 0.0), n - 1)
+        next_stop = stops[
+            np.searchsorted(stops, np.arange(n), side="right").clip(max=stops.size - 1)
+        ]
+        count = np.maximum(np.minimum(reach, next_stop) - np.arange(n), 0)
         first = np.cumsum(count) - count
         i = np.repeat(np.arange(n), count)
         j = i + np.arange(i.size) - np.repeat(first, count)
         start_gap = s[j] - s[i]
         end_gap = s[j + 1] - s[i]
-        value = np.maximum(masked[j + 1], end_gap / half_period_s)
+        value = np.maximum(masked[j + 1], end_gap / reach_s)
         h = s[j + 1] - s[j]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             slope = (v[j + 1] - v[j]) / h
-            x = (v[j] + slope * (s[i] - s[j])) / (
-                1.0 / half_period_s - slope
-            )  # f(s_i + x) = 2 x / T
+            x = (v[j] + slope * (s[i] - s[j])) / (1.0 / reach_s - slope)  # f(s_i + x) = x / reach
         crossing = (
             (v[j] > 0.0)
             & (v[j + 1] > 0.0)
             & (h > 0.0)
-            & (slope < 1.0 / half_period_s)
+            & (slope < 1.0 / reach_s)
             & (x >= start_gap)
             & (x <= end_gap)
         )
-        value = np.where(crossing, np.minimum(value, x / half_period_s), value)
+        value = np.where(crossing, np.minimum(value, x / reach_s), value)
         out = np.full(n, np.inf)
         paired = count > 0
         if paired.any():

@@ -248,19 +248,23 @@ def test_a_start_too_fast_for_a_staircase_brakes_in_onesegment_plan():
 
 
 def test_envelope_dilation_is_exact_between_samples(path):
-    # A limit falling linearly, f(s) = a - b s, on an uneven grid: the middle of a step of w T
-    # from s meets f = w where a - b (s + w T / 2) = w, so w = f(s) / (1 + b T / 2) at every
-    # sample, a monotone envelope. The samples alone gave more here, and where a curved limit
-    # falls steeply a sawtooth whose teeth became sensitive points.
+    # A limit falling linearly, f(s) = a - b s, on an uneven grid. As the chord-error feed, the
+    # middle of a step of w T from s meets f = w where a - b (s + w T / 2) = w, so
+    # w = f(s) / (1 + b T / 2) at every sample; as any other limit (the chord-deficit jerk, the
+    # accelerations), the step's end does: w = f(s) / (1 + b T). Both monotone envelopes. The
+    # samples alone gave more here, and where a curved limit falls steeply a sawtooth whose
+    # teeth became sensitive points.
     envelope = FeedEnvelope(path.curve, path.arc, LIMITS, T)
     rng = np.random.default_rng(5)
     s = np.cumsum(rng.uniform(0.01, 0.2, 200))
     a, b = 100.0, 4.0
-    expected = (a - b * s) / (1.0 + 0.5 * b * T)
-    dilated = envelope._dilated(s, a - b * s)
-    inside = s + 0.5 * expected * T <= s[-1]  # the half step ends on the grid
-    assert np.allclose(dilated[inside], expected[inside], rtol=1e-12)
-    assert np.all(np.diff(dilated) <= 0.0)
+    falling, unbounded = a - b * s, np.full(s.size, np.inf)
+    for columns, reach_s in (((falling, unbounded), 0.5 * T), ((unbounded, falling), T)):
+        expected = falling / (1.0 + b * reach_s)
+        dilated = envelope._dilated(s, np.stack(columns, axis=1))
+        inside = s + expected * reach_s <= s[-1]  # the reach ends on the grid
+        assert np.allclose(dilated[inside], expected[inside], rtol=1e-12)
+        assert np.all(np.diff(dilated) <= 0.0)
 
 
 def test_a_smooth_dip_of_the_feed_limit_is_followed_by_points_pinned_on_it():

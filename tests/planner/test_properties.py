@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import setpoint_checks as sc
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from planner.nurbs import NurbsCurve
-from planner.stream import Path, plan_setpoints
+from planner.stream import Path, plan_setpoints, stream_setpoints
 from planner.types import Limits, SetpointBlock
 
 T = 0.004
@@ -53,6 +54,83 @@ def curves(draw) -> NurbsCurve:
 )
 def test_random_curves_keep_every_limit(curve, delta, vmax):
     assert_every_limit_holds(curve, delta, vmax)
+
+
+# Found by longer runs of the test above (its examples are fixed: derandomize).
+JERK_CASES = {
+    # A line turning into a 1 mm radius at a knot: the curvature jumps, and the chord deficit
+    # with it, within one step (1.06 J without planner.feed.curvature_jump_feed).
+    "curvature jump at a knot": NurbsCurve.from_arrays(
+        2,
+        np.array([[0, 0, 0], [0, 17, 4], [0, 17, 4], [0, 17, 4], [0, 18, 0], [0, 0, 1], [0, 0, 0]]),
+        np.array([0, 0, 0, 0.25, 0.25, 0.5, 0.75, 1, 1, 1]),
+    ),
+    # A tip whose limit is set by the chord-deficit jerk, the feed limit falling from 140 to
+    # 15 mm/s within two steps: that limit must reach a whole step (1.055 J at half a step).
+    "tip bound by the chord deficit": NurbsCurve.from_arrays(
+        2,
+        np.array(
+            [[0, 0, 0], [0, 0, 0], [0, 0, 0], [7, 0, 0], [1.5, -11, 5], [1, -27, -23], [0, 0, 0]]
+        ),
+        np.array([0, 0, 0, 0.125, 0.21875, 0.59375, 0.78125, 1, 1, 1]),
+        np.array([1, 1, 1, 0.40625, 1.5, 2.75, 1]),
+    ),
+}
+
+
+@pytest.mark.parametrize("name", JERK_CASES)
+def test_curves_found_by_longer_runs_keep_every_limit(name):
+    assert_every_limit_holds(JERK_CASES[name], 1e-2, 100.0)
+
+
+def test_the_motion_leaves_a_stop_where_a_span_has_zero_length():
+    # Degree 1, two equal control points: the curve stops at that point and turns. The
+    # envelope used to lower the samples after the stop to their distance from it over a step
+    # (a step reaching back across the stop), a limit that vanishes at the stop: the motion
+    # crept on at 1e-11 mm/s and never left it.
+    point = [28.548673629760742, -1.1754943508222875e-38, 19.638324737548828]
+    curve = NurbsCurve.from_arrays(
+        1,
+        np.array(
+            [
+                [-21.11032485961914, 9.410981178283691, 0.0],
+                [15.672968864440918, 1.8313266038894653, 27.853403091430664],
+                [-2.220446049250313e-16, 0.0, 9.999999974752427e-07],
+                point,
+                point,
+                [0.0, 0.0, 17.700315475463867],
+            ]
+        ),
+        np.array(
+            [
+                0,
+                0,
+                0.1657242616007682,
+                0.17551504928646183,
+                0.3482083497902156,
+                0.7898909236112747,
+                1,
+                1,
+            ]
+        ),
+        np.array(
+            [
+                0.99,
+                1.1615268449664282,
+                0.7507484827096722,
+                0.8438793338861184,
+                1.8737976338980022,
+                1.5,
+            ]
+        ),
+    )
+    limits = Limits(vmax_mm_s=20.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-4)
+    path = Path(curve, limits, T)
+    rows = 0
+    for block in stream_setpoints(path, limits, T):
+        rows += len(block)
+        assert rows < 4 * path.length_mm / limits.vmax_mm_s / T  # well within 4x the cruise time
+    assert_every_limit_holds(curve, 1e-4, 20.0)
 
 
 def assert_every_limit_holds(curve: NurbsCurve, delta: float, vmax: float) -> None:
