@@ -398,11 +398,17 @@ class FeedEnvelope:
         # vanishes at the stop: the motion could never leave it.)
         reach_mm = reach_s * np.minimum(own, self._vcap_mm_s)
         reach = np.searchsorted(s, s + reach_mm, side="right")
+        rows = np.arange(n)
         stops = np.append(np.flatnonzero(v <= 0.0), n - 1)
-        next_stop = stops[
-            np.searchsorted(stops, np.arange(n), side="right").clip(max=stops.size - 1)
-        ]
-        count = np.maximum(np.minimum(reach, next_stop) - np.arange(n), 0)
+        next_stop = stops[np.searchsorted(stops, rows, side="right").clip(max=stops.size - 1)]
+        count = np.maximum(np.minimum(reach, next_stop) - rows, 0)
+        # Only a sample below the override cap can lower another: pair the rows that reach one
+        # (on smooth stretches none does, and the pairs were most of the dilation's work).
+        low = np.flatnonzero((v > 0.0) & (v < self._vcap_mm_s))
+        if low.size == 0:
+            return np.full(n, np.inf)
+        nearest = low[np.searchsorted(low, rows).clip(max=low.size - 1)]
+        count = np.where((nearest >= rows) & (nearest <= rows + count), count, 0)
         first = np.cumsum(count) - count
         i = np.repeat(np.arange(n), count)
         j = i + np.arange(i.size) - np.repeat(first, count)
