@@ -31,7 +31,7 @@ from dataclasses import replace
 import numpy as np
 
 from planner.arclength import ArcLengthTable
-from planner.feed import curvature_jump_feed, geometric_feed_limits, singular_floor_feed
+from planner.feed import curvature_jump_feed, geometric_feed_limits
 from planner.nurbs import NurbsCurve
 from planner.types import Limits
 
@@ -171,12 +171,7 @@ class FeedEnvelope:
         hidden = np.flatnonzero(rising[: u.size - 1] & ~rising_end)
         if knot_rows.size:
             v[knot_rows] = np.minimum(v[knot_rows], v_left)
-            with np.errstate(invalid="ignore"):  # inf - inf at a corner, a stop anyway
-                jump = curvature_jump_feed(k_left, kappa[knot_rows], self._limits.jmax_mm_s3)
-            # Never below the floor where steps are short enough whatever the geometry: a jump
-            # to a near-cusp's curvature would otherwise have the motion creep there.
-            floor = singular_floor_feed(self._limits, self._T)
-            jump = np.maximum(np.nan_to_num(jump, nan=np.inf), floor)
+            jump = curvature_jump_feed(k_left, kappa[knot_rows], self._limits, self._T)
             v[knot_rows, 1] = np.minimum(v[knot_rows, 1], jump)
             kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
             d_right = d1[knot_rows]
@@ -410,7 +405,7 @@ class FeedEnvelope:
         nearest = low[np.searchsorted(low, rows).clip(max=low.size - 1)]
         count = np.where((nearest >= rows) & (nearest <= rows + count), count, 0)
         first = np.cumsum(count) - count
-        i = np.repeat(np.arange(n), count)
+        i = np.repeat(rows, count)
         j = i + np.arange(i.size) - np.repeat(first, count)
         start_gap = s[j] - s[i]
         end_gap = s[j + 1] - s[i]

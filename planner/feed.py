@@ -78,12 +78,17 @@ def chord_deficit_feed(kappa: np.ndarray, J: float, T: float) -> np.ndarray:
     return np.where(kappa * gradual * T < np.sqrt(0.5), gradual, abrupt)
 
 
-def curvature_jump_feed(kappa_a: np.ndarray, kappa_b: np.ndarray, J: float) -> np.ndarray:
+def curvature_jump_feed(
+    kappa_a: np.ndarray, kappa_b: np.ndarray, limits: Limits, T: float
+) -> np.ndarray:
     """Feed across a jump of the curvature from kappa_a to kappa_b whose chord deficit adds at
-    most CHORD_JERK_FRACTION J of jerk (module docstring); inf where it does not jump."""
-    jump = np.abs(np.square(kappa_b) - np.square(kappa_a))
-    with np.errstate(divide="ignore"):
-        return np.cbrt(24.0 * CHORD_JERK_FRACTION * J / jump)
+    most CHORD_JERK_FRACTION J of jerk (module docstring); inf where it does not jump, and
+    never below :func:`singular_floor_feed` (a jump to a near-cusp's curvature would otherwise
+    have the motion creep there)."""
+    with np.errstate(invalid="ignore", divide="ignore"):  # inf - inf: a corner, a stop anyway
+        jump = np.abs(np.square(kappa_b) - np.square(kappa_a))
+        feed = np.cbrt(24.0 * CHORD_JERK_FRACTION * limits.jmax_mm_s3 / jump)
+    return np.maximum(np.nan_to_num(feed, nan=np.inf), singular_floor_feed(limits, T))
 
 
 def tangential_accel_limit(limits: Limits) -> float:
