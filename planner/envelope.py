@@ -53,6 +53,8 @@ CUSP_SEARCH_STEPS = 60
 #: Rounds and points per round of the search of a curvature maximum between its grid
 #: neighbours (each round shrinks the bracket to 2 / (points + 1) of it).
 PEAK_SEARCH_STEPS, PEAK_SEARCH_POINTS = 6, 9
+#: Relative change of the curvature across a bracket below which its peak is resolved.
+PEAK_FLAT_RTOL = 1e-5
 #: Halvings of the grid towards a sharp corner (C'(u) = 0).
 CORNER_REFINEMENTS = 30
 #: The envelope dilation assumes feed overrides up to this ratio of the path's vmax.
@@ -105,6 +107,7 @@ class FeedEnvelope:
             limits, chord_error_mm=limits.chord_error_mm * (1.0 - CHORD_MARGIN)
         )
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._joined_last: tuple[tuple[int, int], tuple[np.ndarray, np.ndarray]] | None = None
 
     @property
     def spans(self) -> int:
@@ -115,18 +118,28 @@ class FeedEnvelope:
         """Grid (s, v_limit) covering [s_lo, s_hi], from the sample at or before s_lo."""
         first = self._arc.span_at_s(s_lo)
         last = min(self._arc.span_at_s(s_hi) + 1, self.spans)
+        s, v = self._joined(first // CHUNK_SPANS, (max(last, first + 1) - 1) // CHUNK_SPANS)
+        i0 = max(int(np.searchsorted(s, s_lo, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(s, s_hi, side="left")) + 1, len(s))
+        return s[i0:i1], v[i0:i1]
+
+    def _joined(self, first: int, last: int) -> tuple[np.ndarray, np.ndarray]:
+        """Samples of chunks ``first`` to ``last`` (inclusive), one read-only array each; the
+        last ones joined are kept, since consecutive windows mostly query the same chunks."""
+        if self._joined_last is not None and self._joined_last[0] == (first, last):
+            return self._joined_last[1]
         s_parts, v_parts = [], []
-        for chunk in range(first // CHUNK_SPANS, (max(last, first + 1) - 1) // CHUNK_SPANS + 1):
+        for chunk in range(first, last + 1):
             s, v = self._chunk(chunk)
             if s_parts:
                 s, v = s[1:], v[1:]
             s_parts.append(s)
             v_parts.append(v)
-        s = np.concatenate(s_parts)
-        v = np.concatenate(v_parts)
-        i0 = max(int(np.searchsorted(s, s_lo, side="right")) - 1, 0)
-        i1 = min(int(np.searchsorted(s, s_hi, side="left")) + 1, len(s))
-        return s[i0:i1], v[i0:i1]
+        joined = (np.concatenate(s_parts), np.concatenate(v_parts))
+        for array in joined:
+            array.flags.writeable = False
+        self._joined_last = ((first, last), joined)
+        return joined
 
     def _chunk(self, chunk: int) -> tuple[np.ndarray, np.ndarray]:
         if chunk in self._cache:
@@ -305,9 +318,10 @@ class FeedEnvelope:
 
         Each grid maximum brackets one between its neighbours, and each grid interval in
         ``hidden`` (the curvature rising at its start and falling at its end: a peak between
-        two low samples) one between its ends; ``PEAK_SEARCH_STEPS`` times the
+        two low samples) one between its ends; up to ``PEAK_SEARCH_STEPS`` times the
         curvature is evaluated at ``PEAK_SEARCH_POINTS`` points across the bracket (all peaks
-        in one call) and the bracket shrinks to the best point's neighbours, so that a tip far
+        in one call) and the bracket shrinks to the best point's neighbours, until it is flat
+        (``PEAK_FLAT_RTOL``: a broad maximum takes two or three rounds), so that a tip far
         narrower than the grid (a near-cusp) is planned at its own radius (a parabola through
         the grid samples would miss most of it).
         """
@@ -319,13 +333,20 @@ class FeedEnvelope:
         hi = np.concatenate([u[peak + 1], u[hidden + 1]])
         inner = np.linspace(0.0, 1.0, PEAK_SEARCH_POINTS + 2)
         best = 0.5 * (lo + hi)
+        active = np.arange(len(lo))
         for _ in range(PEAK_SEARCH_STEPS):
-            x = lo[:, None] + (hi - lo)[:, None] * inner
-            k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(lo), -1)
+            x = lo[active, None] + (hi - lo)[active, None] * inner
+            k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(active), -1)
             k = np.where(np.isfinite(k), k, np.inf)
-            i = np.argmax(k, axis=1) + 1
-            rows = np.arange(len(lo))
-            best, lo, hi = x[rows, i], x[rows, i - 1], x[rows, i + 1]
+            i = np.argmax(k, axis=1)
+            rows = np.arange(len(active))
+            best[active], lo[active], hi[active] = x[rows, i + 1], x[rows, i], x[rows, i + 2]
+            # The curvature within PEAK_FLAT_RTOL across the whole bracket: a broad maximum,
+            # resolved (the limit no longer changes).
+            flat = k.min(axis=1) >= k[rows, i] * (1.0 - PEAK_FLAT_RTOL)
+            active = active[~flat]
+            if active.size == 0:
+                break
         return best
 
     @staticmethod
@@ -397,13 +418,18 @@ class FeedEnvelope:
         stops = np.append(np.flatnonzero(v <= 0.0), n - 1)
         next_stop = stops[np.searchsorted(stops, rows, side="right").clip(max=stops.size - 1)]
         count = np.maximum(np.minimum(reach, next_stop) - rows, 0)
-        # Only a sample below the override cap can lower another: pair the rows that reach one
-        # (on smooth stretches none does, and the pairs were most of the dilation's work).
-        low = np.flatnonzero((v > 0.0) & (v < self._vcap_mm_s))
-        if low.size == 0:
-            return np.full(n, np.inf)
-        nearest = low[np.searchsorted(low, rows).clip(max=low.size - 1)]
-        count = np.where((nearest >= rows) & (nearest <= rows + count), count, 0)
+        # Pair only the rows that reach a sample below their own limit and the override cap:
+        # elsewhere f stays above that on the whole reach, and so does every value below (on
+        # smooth stretches no row reaches one, and the pairs were most of the dilation's work).
+        # The lowest sample of each reach [i + 1, i + count] comes from one reduceat, whose
+        # odd results (from one reach's end to the next one's start) are dropped.
+        reaching = np.flatnonzero(count > 0)
+        lowers = np.zeros(n, dtype=bool)
+        if reaching.size:
+            bounds = np.stack([reaching + 1, reaching + count[reaching] + 1], axis=1).ravel()
+            lowest = np.minimum.reduceat(np.append(masked, np.inf), bounds)[::2]
+            lowers[reaching] = lowest < np.minimum(own[reaching], self._vcap_mm_s)
+        count = np.where(lowers, count, 0)
         first = np.cumsum(count) - count
         i = np.repeat(rows, count)
         j = i + np.arange(i.size) - np.repeat(first, count)
