@@ -10,7 +10,9 @@ exact for the piecewise-linear limit between samples, and never across a stop): 
 feed to those within half a period's step, since a chord's deviation from the curve is set by
 the curvature around its middle (to first order, L^2 kappa / 8 with kappa at the middle), and
 the other limits (the chord-deficit jerk, with its jumps at knots, and the accelerations) to
-those within a whole step, so a step never sees a larger curvature than planned. Sharp corners and
+those within a whole step, so a step never sees a larger curvature than planned; then the
+chord deficit's change from step to step is checked at each sample
+(:func:`planner.feed.chord_deficit_change_feed`). Sharp corners and
 cusps (C'(u) = 0 with a turning tangent) are stops (limit 0) with a grid refined towards them;
 the curvature maxima are located by a shrinking grid search of the curvature itself, so that a
 tip far narrower than the grid is planned at its own radius.
@@ -31,7 +33,11 @@ from dataclasses import replace
 import numpy as np
 
 from planner.arclength import ArcLengthTable
-from planner.feed import curvature_jump_feed, geometric_feed_limits
+from planner.feed import (
+    chord_deficit_change_feed,
+    curvature_jump_feed,
+    geometric_feed_limits,
+)
 from planner.nurbs import NurbsCurve
 from planner.types import Limits
 
@@ -194,7 +200,7 @@ class FeedEnvelope:
             corner = (norms > 0.0) & (cos_turn < 1.0 - CORNER_COS_TOL)
             v[knot_rows[corner]] = 0.0
             kappa[knot_rows[corner]] = np.inf
-        samples = (u, v)
+        samples = (u, v, kappa)
         extras = []
         peaks = self._curvature_maxima(u, kappa, hidden)
         if peaks.size:
@@ -207,10 +213,11 @@ class FeedEnvelope:
         cusps = self._cusps(u, d1)
         if cusps.size:
             # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
-            samples = self._merged(samples, [(cusps, np.zeros((cusps.size, 2)))])
+            stops = (cusps, np.zeros((cusps.size, 2)), np.full(cusps.size, np.inf))
+            samples = self._merged(samples, [stops])
         extras.append(self._sampled(self._corner_grid(samples[0], samples[1].min(axis=1))))
         extras.append(self._tight_midpoints(u, v))
-        u, v = self._merged(samples, extras)
+        u, v, kappa = self._merged(samples, extras)
         s = np.maximum.accumulate(self._arc.s_of_u(u))
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
@@ -218,8 +225,12 @@ class FeedEnvelope:
         fresh = np.concatenate([[True], np.diff(s) > 0.0])
         starts = np.flatnonzero(fresh)
         v = np.minimum.reduceat(v, starts)
+        kappa = np.maximum.reduceat(kappa, starts)
         s = s[starts]
-        return s, self._dilated(s, v)
+        limit = self._dilated(s, v)
+        return s, chord_deficit_change_feed(
+            s, kappa, limit, self._vcap_mm_s, self._planning_limits, self._T
+        )
 
     def _limit(
         self, u: np.ndarray, *, slopes: bool = False
@@ -236,15 +247,17 @@ class FeedEnvelope:
         v = np.stack([v_chord, v_other], axis=1)
         return kappa, v, d1, curvature_rises(d1, d2, ders[3]) if slopes else d2
 
-    def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Samples (u, v_limit) at u."""
-        return u, self._limit(u)[1]
+    def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Samples (u, v_limit, kappa) at u."""
+        kappa, v, _, _ = self._limit(u)
+        return u, v, kappa
 
     @staticmethod
     def _merged(
-        samples: tuple[np.ndarray, np.ndarray], extras: list[tuple[np.ndarray, np.ndarray]]
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Samples (u, v_limit) with the extra ones strictly inside them added, in order of u."""
+        samples: tuple[np.ndarray, ...], extras: list[tuple[np.ndarray, ...]]
+    ) -> tuple[np.ndarray, ...]:
+        """Samples (u, v_limit, kappa) with the extra ones strictly inside them added, in order
+        of u."""
         lo, hi = samples[0][0], samples[0][-1]
         parts = [samples]
         for extra in extras:
@@ -253,9 +266,9 @@ class FeedEnvelope:
                 parts.append(tuple(column[inside] for column in extra))
         if len(parts) == 1:
             return samples
-        u, v = (np.concatenate(columns) for columns in zip(*parts, strict=True))
-        order = np.argsort(u, kind="stable")
-        return u[order], v[order]
+        columns = [np.concatenate(column) for column in zip(*parts, strict=True)]
+        order = np.argsort(columns[0], kind="stable")
+        return tuple(column[order] for column in columns)
 
     def _cusps(self, u: np.ndarray, d1: np.ndarray) -> np.ndarray:
         """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).
@@ -279,8 +292,10 @@ class FeedEnvelope:
         reverses = dots[turn] < 0.0
         return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
 
-    def _tight_midpoints(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Samples (u, v_limit) added where the grid is coarse for the feed limit.
+    def _tight_midpoints(
+        self, u: np.ndarray, v: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Samples (u, v_limit, kappa) added where the grid is coarse for the feed limit.
 
         The limit is interpolated linearly between samples, which is only safe where it changes
         little: an interval is halved, up to ``TIGHT_LEVELS`` times, while its limit changes by
@@ -309,9 +324,8 @@ class FeedEnvelope:
                 np.concatenate([mid_v, v_hi[coarse]]),
             )
         if not added:
-            return np.empty(0), np.empty((0, 2))
-        u_added, v_added = (np.concatenate(columns) for columns in zip(*added, strict=True))
-        return u_added, v_added
+            return np.empty(0), np.empty((0, 2)), np.empty(0)
+        return tuple(np.concatenate(column) for column in zip(*added, strict=True))
 
     def _curvature_maxima(self, u: np.ndarray, kappa: np.ndarray, hidden: np.ndarray) -> np.ndarray:
         """Parameters of the interior local maxima of curvature, by a shrinking grid search.

@@ -9,6 +9,8 @@ import pytest
 
 from planner.feed import (
     adaptive_feed,
+    chord_deficit_change_feed,
+    chord_deficit_feed,
     chord_error_feed,
     geometric_feed_limit,
     normal_accel_feed,
@@ -36,6 +38,26 @@ def test_corner_and_straight_line():
     v = chord_error_feed(np.array([math.inf, 0.0]), 1e-3, T)
     assert v[0] == 0.0 and v[1] == math.inf
     assert adaptive_feed(np.array([0.0]), 100.0, 1e-3, T)[0] == 100.0  # eq. (4)
+
+
+def test_chord_deficit_change_lowers_the_limit_only_where_the_curvature_changes_faster():
+    # A tip kappa(s) = 1 / (1 + s²): chord_deficit_feed takes (kappa²)'' = 4 kappa⁴, exact at
+    # the peak; on the flanks, |s| > 0.63, |(kappa²)''| = |20 s² - 4| kappa⁴ is larger, and the
+    # limit of the deficit's change from step to step binds there. A circle keeps its limit.
+    limits = Limits(100.0, 1000.0, 20000.0, 1e-3)
+    s = np.linspace(-5.0, 5.0, 20001)
+    kappa = 1.0 / (1.0 + s * s)
+    v = chord_deficit_feed(kappa, limits.jmax_mm_s3, T)
+    lowered = chord_deficit_change_feed(s, kappa, v, 200.0, limits, T)
+    assert np.array_equal(lowered[np.abs(s) < 0.6], v[np.abs(s) < 0.6])
+    assert np.all(lowered <= v)
+    assert lowered[np.argmin(np.abs(s - 1.5))] < 0.8 * v[np.argmin(np.abs(s - 1.5))]
+    arc = np.linspace(0.0, 20.0, 2001)
+    circle = np.full(arc.size, 0.5)
+    v_circle = chord_deficit_feed(circle, limits.jmax_mm_s3, T)
+    assert np.array_equal(
+        chord_deficit_change_feed(arc, circle, v_circle, 200.0, limits, T), v_circle
+    )
 
 
 def test_normal_acceleration_limit():

@@ -75,6 +75,15 @@ JERK_CASES = {
         np.array([0, 0, 0, 0.125, 0.21875, 0.59375, 0.78125, 1, 1, 1]),
         np.array([1, 1, 1, 0.40625, 1.5, 2.75, 1]),
     ),
+    # The curvature falls from 1/mm to 0 within 0.7 mm, faster than a tip of that radius: the
+    # chord deficit changes faster than chord_deficit_feed assumes (1.09 J without
+    # planner.feed.chord_deficit_change_feed).
+    "curvature falling to 0 within its radius": NurbsCurve.from_arrays(
+        3,
+        np.array([[0, 3], [0, 0], [5, 0], [0, 0], [0, 0]]),
+        np.array([0, 0, 0, 0, 0.0625, 1, 1, 1, 1]),
+        np.array([1, 0.5, 2, 1, 1]),
+    ),
 }
 
 
