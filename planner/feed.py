@@ -93,7 +93,9 @@ def curvature_jump_feed(
     with np.errstate(invalid="ignore", divide="ignore"):  # inf - inf: a corner, a stop anyway
         jump = np.abs(np.square(kappa_b) - np.square(kappa_a))
         feed = np.cbrt(24.0 * CHORD_JERK_FRACTION * limits.jmax_mm_s3 / jump)
-    return np.maximum(np.nan_to_num(feed, nan=np.inf), singular_floor_feed(limits, T))
+    # Not np.nan_to_num: it would also turn inf into the largest float, and the envelope's
+    # linear interpolation from there overflows to -inf.
+    return np.maximum(np.where(np.isnan(feed), np.inf, feed), singular_floor_feed(limits, T))
 
 
 def chord_deficit_change_feed(

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from planner.feed import (
+    CHORD_JERK_FRACTION,
     adaptive_feed,
     chord_deficit_change_feed,
     chord_deficit_feed,
     chord_error_feed,
+    curvature_jump_feed,
     geometric_feed_limit,
     normal_accel_feed,
     tangential_accel_limit,
@@ -57,6 +59,16 @@ def test_chord_deficit_change_lowers_the_limit_only_where_the_curvature_changes_
     v_circle = chord_deficit_feed(circle, limits.jmax_mm_s3, T)
     assert np.array_equal(
         chord_deficit_change_feed(arc, circle, v_circle, 200.0, limits, T), v_circle
+    )
+
+
+def test_no_curvature_jump_leaves_the_feed_unlimited():
+    # inf, not the largest float: interpolating from that to a neighbour overflows to -inf.
+    limits = Limits(100.0, 1000.0, 20000.0, 1e-3)
+    feed = curvature_jump_feed(np.array([0.0, 0.5]), np.array([0.0, 0.5]), limits, T)
+    assert np.all(feed == math.inf)
+    assert curvature_jump_feed(np.array([0.0]), np.array([1.0]), limits, T)[0] == pytest.approx(
+        (24 * CHORD_JERK_FRACTION * 20000.0) ** (1 / 3)
     )
 
 

@@ -92,6 +92,19 @@ def test_curves_found_by_longer_runs_keep_every_limit(name):
     assert_every_limit_holds(JERK_CASES[name], 1e-2, 100.0)
 
 
+def test_a_straight_stretch_that_meets_a_curve_at_a_knot_is_planned_to_the_end():
+    # Degree 4: a straight line along x, then from the knot at u = 0.75 a curve turning back
+    # towards (0, 1). At that knot the curvature is 0 on both sides; its curvature-jump limit
+    # was the largest float instead of inf, and the checker's linear interpolation from there to
+    # the next sample, 0.23 mm on, overflowed to -inf: the plan's speeds became infinite.
+    curve = NurbsCurve.from_arrays(
+        4,
+        np.array([[0, 0], [0, 0], [0, 0], [0, 0], [0, 0], [14, 0], [0, 1]]),
+        np.array([0, 0, 0, 0, 0, 0.05, 0.75, 1, 1, 1, 1, 1]),
+    )
+    assert_every_limit_holds(curve, 1e-2, 20.0)
+
+
 def test_the_motion_leaves_a_stop_where_a_span_has_zero_length():
     # Degree 1, two equal control points: the curve stops at that point and turns. The
     # envelope used to lower the samples after the stop to their distance from it over a step
