@@ -445,23 +445,21 @@ class FeedEnvelope:
             lowers[reaching] = lowest < np.minimum(own[reaching], self._vcap_mm_s)
         count = np.where(lowers, count, 0)
         first = np.cumsum(count) - count
-        i = np.repeat(rows, count)
-        j = i + np.arange(i.size) - np.repeat(first, count)
-        start_gap = s[j] - s[i]
-        end_gap = s[j + 1] - s[i]
-        value = np.maximum(masked[j + 1], end_gap / reach_s)
-        h = s[j + 1] - s[j]
+        # Per grid interval [s_j, s_j+1]: the slope of f, and whether f can cross x / reach
+        # there (both ends moving, rising more slowly than x / reach).
+        h = np.diff(s)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            slope = (v[j + 1] - v[j]) / h
-            x = (v[j] + slope * (s[i] - s[j])) / (1.0 / reach_s - slope)  # f(s_i + x) = x / reach
-        crossing = (
-            (v[j] > 0.0)
-            & (v[j + 1] > 0.0)
-            & (h > 0.0)
-            & (slope < 1.0 / reach_s)
-            & (x >= start_gap)
-            & (x <= end_gap)
-        )
+            slope_of = np.diff(v) / h
+        may_cross = (v[:-1] > 0.0) & (v[1:] > 0.0) & (h > 0.0) & (slope_of < 1.0 / reach_s)
+        j = np.arange(first[-1] + count[-1]) + np.repeat(rows - first, count)
+        s_i = np.repeat(s, count)
+        start_gap = s[j] - s_i
+        end_gap = s[j + 1] - s_i
+        value = np.maximum(masked[j + 1], end_gap / reach_s)
+        slope = slope_of[j]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            x = (v[j] - slope * start_gap) / (1.0 / reach_s - slope)  # f(s_i + x) = x / reach
+        crossing = may_cross[j] & (x >= start_gap) & (x <= end_gap)
         value = np.where(crossing, np.minimum(value, x / reach_s), value)
         out = np.full(n, np.inf)
         paired = count > 0
