@@ -105,6 +105,31 @@ def test_a_straight_stretch_that_meets_a_curve_at_a_knot_is_planned_to_the_end()
     assert_every_limit_holds(curve, 1e-2, 20.0)
 
 
+def test_the_limit_next_to_a_tip_is_sampled_where_it_changes_fast():
+    # A tip of 2 mm/s at 0.1 µm inside a grid interval whose ends have alike limits: the
+    # interval was not halved, and the limit, concave on either side of the tip, was
+    # interpolated linearly over the 0.056 mm from the tip's neighbour to the grid (1.018 delta).
+    curve = NurbsCurve.from_arrays(
+        5,
+        np.array(
+            [
+                [0, 0],
+                [-1, 12],
+                [-1, 12],
+                [-1.5, 9.9375],
+                [0, 16.5],
+                [-17, 0],
+                [0, 2],
+                [0, 0],
+                [0, 0],
+            ]
+        ),
+        np.array([0, 0, 0, 0, 0, 0, 0.05078125, 0.3046875, 0.3125, 1, 1, 1, 1, 1, 1]),
+        np.array([1, 0.3125, 0.3125, 0.3125, 0.3125, 0.3125, 1, 1, 1]),
+    )
+    assert_every_limit_holds(curve, 1e-4, 100.0)
+
+
 def test_the_motion_leaves_a_stop_where_a_span_has_zero_length():
     # Degree 1, two equal control points: the curve stops at that point and turns. The
     # envelope used to lower the samples after the stop to their distance from it over a step
