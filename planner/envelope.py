@@ -37,6 +37,7 @@ from planner.feed import (
     chord_deficit_change_feed,
     curvature_jump_feed,
     geometric_feed_limits,
+    singular_floor_feed,
 )
 from planner.nurbs import NurbsCurve
 from planner.types import Limits
@@ -402,7 +403,11 @@ class FeedEnvelope:
             self._lowered(s, np.where(stop, 0.0, v[:, column]), limit, reach_s)
             for column, reach_s in ((0, 0.5 * self._T), (1, self._T))
         ]
-        return np.where(stop, 0.0, np.minimum(limit, np.minimum(*lowered)))
+        # Never below the singular floor (a step that short needs no geometric limit): next to
+        # a sample at the floor, that is not a stop, the dilation would otherwise leave a limit
+        # vanishing with the distance to it, d / reach, which the motion approaches forever.
+        floor = singular_floor_feed(self._planning_limits, self._T)
+        return np.where(stop, 0.0, np.maximum(np.minimum(limit, np.minimum(*lowered)), floor))
 
     def _lowered(self, s: np.ndarray, f: np.ndarray, own: np.ndarray, reach_s: float) -> np.ndarray:
         """The largest w <= ``own`` at each sample with w <= f(s_i +- x) for every x up to
