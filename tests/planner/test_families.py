@@ -49,7 +49,7 @@ def family_settings(max_examples: int) -> settings:
     )
 
 
-@family_settings(100)
+@family_settings(400)
 @given(
     curve=family_curves(),
     delta=st.sampled_from([1e-4, 1e-3, 1e-2]),
@@ -59,7 +59,7 @@ def test_curve_families_keep_every_limit(curve, delta, vmax):
     assert_every_limit_holds(curve, delta, vmax)
 
 
-@family_settings(60)
+@family_settings(240)
 @given(
     curve=family_curves(),
     delta=st.sampled_from([1e-4, 1e-3, 1e-2]),
