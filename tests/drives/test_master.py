@@ -239,12 +239,16 @@ def test_feedback_is_judged_against_the_target_of_the_sync_it_answered(rig: Rig)
     _cycle(rig, [0.0, 0.0], play=enabled)
     sync_stamps: dict[int, float] = {}
     for k in range(1, 11):
+        time.sleep(0.001)  # SYNCs apart by more than a stamp's jitter, as on a bus
         _cycle(rig, [0.1 * k, 0.0])
         sync_stamps[master.syncs_sent] = rig.last_sync_s
     sent = master.syncs_sent
     # A TPDO that answered the SYNC sent 4 periods ago (it reaches us late): position 0.6 mm.
-    _play(rig, 1, State.OPERATION_ENABLED, 600, timestamp=sync_stamps[sent - 4] + 0.0001)
-    _play(rig, 2, State.OPERATION_ENABLED, 0, timestamp=sync_stamps[sent - 4] + 0.0001)
+    # Stamped halfway to the next SYNC: 0.1 ms after it, with the loop's SYNCs 0.16-0.2 ms
+    # apart, matched the next SYNC now and then under load.
+    answered_s = 0.5 * (sync_stamps[sent - 4] + sync_stamps[sent - 3])
+    _play(rig, 1, State.OPERATION_ENABLED, 600, timestamp=answered_s)
+    _play(rig, 2, State.OPERATION_ENABLED, 0, timestamp=answered_s)
     deadline = time.monotonic() + 2.0
     while True:
         master.receive(time.monotonic())
