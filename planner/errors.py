@@ -41,6 +41,8 @@ class CurveRule(Enum):
     """The end knots are not repeated exactly degree + 1 times."""
     KNOT_MULTIPLICITY = "knot multiplicity"
     """An interior knot repeats more than degree times (the curve would be discontinuous)."""
+    KNOT_SPACING = "knot spacing"
+    """Two distinct knots so close that the parameter cannot resolve the path between them."""
     ZERO_LENGTH = "zero length"
     """All control points coincide."""
     PARAMETER = "parameter"

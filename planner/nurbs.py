@@ -20,7 +20,10 @@ Invariants of a constructed :class:`NurbsCurve` (checked once, vectorised, in
 ``__post_init__``): degree >= 1; at least degree + 1 control points of dimension 2 or 3, finite,
 not all equal; finite weights > 0, one per point; knots finite, non-decreasing, clamped (the
 first and the last value repeated exactly degree + 1 times), first < last, every interior knot
-value repeated at most degree times (so the curve is continuous). Its arrays are read-only.
+value repeated at most degree times (so the curve is continuous), distinct knots far enough
+apart that one ulp of u moves the curve by at most ``PARAMETER_RESOLUTION_MM`` (or setpoints
+inside the span could not be placed: a span one ulp wide jumps its whole length in one
+period). Its arrays are read-only.
 
 Thread safety: instances are immutable and may be shared between threads.
 
@@ -43,6 +46,8 @@ from planner.errors import CurveError, CurveRule
 
 #: Highest derivative order that :meth:`NurbsCurve.evaluate` computes.
 MAX_ORDER = 3
+#: Most a knot span's path may move over one step of the parameter (one ulp of u), mm.
+PARAMETER_RESOLUTION_MM = 1e-6
 
 #: Spans converted to polynomial form per pass while a curve is built.
 _TAYLOR_CHUNK = 1 << 15
@@ -81,6 +86,7 @@ class NurbsCurve:
         weights = _validated_weights(self.weights, len(points))
         knots = _validated_knots(self.knots, degree, len(points))
         _check_nonzero_length(points)
+        _check_parameter_resolution(knots, degree, points, weights)
         # Equal weights cancel: the curve is a B-spline and needs no division by w(u).
         rational = bool((weights != weights[0]).any())
         homogeneous = (
@@ -540,6 +546,42 @@ def _validated_knots(knots: ArrayLike, degree: int, n_points: int) -> np.ndarray
             rule=CurveRule.KNOT_MULTIPLICITY,
         )
     return knots
+
+
+def _check_parameter_resolution(
+    knots: np.ndarray, p: int, points: np.ndarray, weights: np.ndarray
+) -> None:
+    """Every non-empty span resolves its path: one ulp of u moves the curve by at most
+    PARAMETER_RESOLUTION_MM.
+
+    On span [knots[k], knots[k + 1]), |C'| is at most the largest of the derivative's control
+    points Q_i = p (P_i+1 - P_i) / (knots[i + p + 1] - knots[i + 1]), i = k - p .. k - 1
+    (The NURBS Book, eq. 3.4), times (w_max / w_min)² over the span's weights for a rational
+    curve (a bound, not the exact value); one ulp of u moves it by |C'| ulp.
+    """
+    n = len(points)
+    reach = knots[p + 1 : n + p] - knots[1:n]
+    with np.errstate(divide="ignore"):
+        q = p * np.linalg.norm(np.diff(points, axis=0), axis=1) / reach
+    speed = np.lib.stride_tricks.sliding_window_view(q, p).max(axis=1)
+    span_weights = np.lib.stride_tricks.sliding_window_view(weights, p + 1)
+    speed = speed * (span_weights.max(axis=1) / span_weights.min(axis=1)) ** 2
+    k = np.arange(p, n)
+    width = knots[k + 1] - knots[k]
+    ulp = np.spacing(np.maximum(np.abs(knots[k]), np.abs(knots[k + 1])))
+    move = np.where(width > 0.0, speed * ulp, 0.0)
+    coarse = move > PARAMETER_RESOLUTION_MM
+    if coarse.any():
+        i = int(np.argmax(coarse))
+        j = int(k[i])
+        raise CurveError(
+            f"knots[{j}..{j + 1}]",
+            f"got {float(knots[j])!r} and {float(knots[j + 1])!r}, {float(width[i]):.3g} apart: "
+            f"one step of the parameter there (one ulp) moves the tool by up to "
+            f"{float(move[i]):.3g} mm, must be at most {PARAMETER_RESOLUTION_MM} mm (space "
+            "them further apart, or merge them where the degree allows)",
+            rule=CurveRule.KNOT_SPACING,
+        )
 
 
 def _check_nonzero_length(points: np.ndarray) -> None:

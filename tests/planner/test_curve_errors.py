@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from planner.errors import CurveError, PlannerError
+from planner.errors import CurveError, CurveRule, PlannerError
 from planner.nurbs import NurbsCurve
 
 POINTS = [[5, 5, 4], [25, 40, 9], [50, 70, 16], [65, 75, 22], [77, 73, 30], [105, 57, 32]]
@@ -166,6 +166,28 @@ def test_interior_knot_multiplicity_is_at_most_degree() -> None:
 def test_interior_knot_of_multiplicity_degree_is_allowed() -> None:
     knots = [0, 0, 0, 0.5, 0.5, 0.7, 0.8, 1, 1, 1]
     assert NurbsCurve.from_mapping(document(degree=2, knots=knots)).degree == 2
+
+
+def test_distinct_knots_resolve_the_path_between_them() -> None:
+    # Knots one ulp apart: u has no value inside the span, whose 1 mm of path the tool would
+    # jump in one period (found by a property run: 250 mm/s on a 20 mm/s plan).
+    knots = [0, 0, 0.05, 0.05000000000000001, 0.5, 0.75, 1, 1]
+    points = [[0, 0], [0, 0], [0, 1], [0, 0], [0, 0], [0, 0]]
+    error = rejected(document(degree=1, control_points=points, weights=[1.0] * 6, knots=knots))
+    assert error.rule is CurveRule.KNOT_SPACING
+    assert str(error) == (
+        "curve: knots[2..3]: got 0.05 and 0.05000000000000001, 6.94e-18 apart: one step of the "
+        "parameter there (one ulp) moves the tool by up to 1 mm, must be at most 1e-06 mm "
+        "(space them further apart, or merge them where the degree allows)"
+    )
+    # Equal knots hold no span, and knots 1e-9 apart resolve 1 mm to 1e-8 mm.
+    knots[3] = 0.05 + 1e-9
+    assert (
+        NurbsCurve.from_mapping(
+            document(degree=1, control_points=points, weights=[1.0] * 6, knots=knots)
+        ).degree
+        == 1
+    )
 
 
 def test_curve_has_non_zero_length() -> None:
