@@ -563,10 +563,12 @@ def _check_parameter_resolution(
     reach = knots[p + 1 : n + p] - knots[1:n]
     with np.errstate(divide="ignore"):
         q = p * np.linalg.norm(np.diff(points, axis=0), axis=1) / reach
-    speed = np.lib.stride_tricks.sliding_window_view(q, p).max(axis=1)
-    span_weights = np.lib.stride_tricks.sliding_window_view(weights, p + 1)
-    speed = speed * (span_weights.max(axis=1) / span_weights.min(axis=1)) ** 2
     k = np.arange(p, n)
+    # Over each span's window (shifted copies: faster than a sliding window's reduction).
+    speed = np.max([q[j : j + n - p] for j in range(p)], axis=0)
+    w_max = np.max([weights[j : j + n - p] for j in range(p + 1)], axis=0)
+    w_min = np.min([weights[j : j + n - p] for j in range(p + 1)], axis=0)
+    speed = speed * (w_max / w_min) ** 2
     width = knots[k + 1] - knots[k]
     ulp = np.spacing(np.maximum(np.abs(knots[k]), np.abs(knots[k + 1])))
     move = np.where(width > 0.0, speed * ulp, 0.0)
