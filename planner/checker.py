@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from planner.envelope import range_minima
 from planner.profiles import PhaseTrain
 from planner.window import PlanLimits
 
@@ -120,9 +121,6 @@ class Checker:
         i1 = np.searchsorted(self.s_env, s1, side="right")
         inner = np.flatnonzero(i1 > i0)
         if inner.size:
-            # reduceat over [i0, i1) pairs: the odd entries span the gaps between them (the
-            # array is cut after the highest bound, or the last would run to its end).
-            bounds = np.stack([i0[inner], i1[inner]], axis=1).ravel()
-            inside = np.minimum.reduceat(self._v_padded[: bounds.max() + 1], bounds)[::2]
+            inside = range_minima(self._v_padded, i0[inner], i1[inner])
             lowest[inner] = np.minimum(lowest[inner], inside)
         return lowest

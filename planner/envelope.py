@@ -87,6 +87,15 @@ def curvature_rises(d1: np.ndarray, d2: np.ndarray, d3: np.ndarray) -> np.ndarra
     return c_dc * speed2 - 3.0 * c_c * np.einsum("ij,ij->i", d1, d2) > 0.0
 
 
+def range_minima(padded: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """min(padded[lo:hi]) for each pair, lo < hi, of a 1-D array whose last entry is a
+    sentinel (so that hi may reach it), in one reduceat over the interleaved bounds: the odd
+    results, from one range's end to the next one's start, are dropped, and the array is cut
+    after the highest bound, or the last of them would run to its end."""
+    bounds = np.stack([lo, hi], axis=1).ravel()
+    return np.minimum.reduceat(padded[: bounds.max() + 1], bounds)[::2]
+
+
 class FeedEnvelope:
     """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
 
@@ -440,16 +449,16 @@ class FeedEnvelope:
         stops = np.append(np.flatnonzero(v <= 0.0), n - 1)
         next_stop = stops[np.searchsorted(stops, rows, side="right").clip(max=stops.size - 1)]
         count = np.maximum(np.minimum(reach, next_stop) - rows, 0)
-        # Pair only the rows that reach a sample below their own limit and the override cap:
-        # elsewhere f stays above that on the whole reach, and so does every value below (on
-        # smooth stretches no row reaches one, and the pairs were most of the dilation's work).
-        # The lowest sample of each reach [i + 1, i + count] comes from one reduceat, whose
-        # odd results (from one reach's end to the next one's start) are dropped.
+        # Pair only the rows that reach a sample below their own limit and the override cap
+        # (the lowest of samples i + 1 to i + count): elsewhere f stays above that on the whole
+        # reach, and so does every value below (on smooth stretches no row reaches one, and the
+        # pairs were most of the dilation's work).
         reaching = np.flatnonzero(count > 0)
         lowers = np.zeros(n, dtype=bool)
         if reaching.size:
-            bounds = np.stack([reaching + 1, reaching + count[reaching] + 1], axis=1).ravel()
-            lowest = np.minimum.reduceat(np.append(masked, np.inf), bounds)[::2]
+            lowest = range_minima(
+                np.append(masked, np.inf), reaching + 1, reaching + count[reaching] + 1
+            )
             lowers[reaching] = lowest < np.minimum(own[reaching], self._vcap_mm_s)
         count = np.where(lowers, count, 0)
         first = np.cumsum(count) - count

@@ -174,28 +174,21 @@ def tangential_accel_limit(limits: Limits) -> float:
     return min(limits.amax_mm_s2, 0.5 * min(limits.axis_amax_mm_s2))
 
 
-def geometric_feed_limit(
-    d1: np.ndarray, d2: np.ndarray, limits: Limits, T: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Feed limit from the geometry (chord error and the optional limits), without vmax.
-
-    :param d1: (m, dim) first derivatives C'(u).
-    :param d2: (m, dim) second derivatives C''(u).
-    :returns: (kappa, v_limit), each (m,); kappa is inf and v_limit 0 where C'(u) = 0.
-    :raises ValueError: if an axis limit tuple does not match the curve dimension.
-    """
-    kappa, v_chord, v_other = geometric_feed_limits(d1, d2, limits, T)
-    return kappa, np.minimum(v_chord, v_other)
-
-
 def geometric_feed_limits(
     d1: np.ndarray, d2: np.ndarray, limits: Limits, T: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`geometric_feed_limit` in two parts: (kappa, chord-error feed, every other limit).
+    """Feed limit from the geometry (chord error and the optional limits), without vmax, in
+    two parts: the chord-error feed and every other limit.
 
     A step's chord error depends on the curvature around the step's middle; the chord-deficit
     jerk and the accelerations on the setpoints (second differences) on the steps either side
     as well, so the envelope reaches further for them (:mod:`planner.envelope`).
+
+    :param d1: (m, dim) first derivatives C'(u).
+    :param d2: (m, dim) second derivatives C''(u).
+    :returns: (kappa, v_chord, v_other), each (m,); kappa is inf and both feeds 0 where
+        C'(u) = 0.
+    :raises ValueError: if an axis limit tuple does not match the curve dimension.
     """
     speed = np.sqrt(np.einsum("ij,ij->i", d1, d1))
     moving = speed > 0.0

@@ -14,7 +14,7 @@ from planner.feed import (
     chord_deficit_feed,
     chord_error_feed,
     curvature_jump_feed,
-    geometric_feed_limit,
+    geometric_feed_limits,
     normal_accel_feed,
     tangential_accel_limit,
 )
@@ -80,7 +80,8 @@ def test_optional_limits_are_off_by_default_and_apply_when_set():
     d1 = np.array([[3.0, 4.0]])
     d2 = np.array([[-4.0, 3.0]])  # circle of radius 5 at this point
     paper = Limits(100.0, 1000.0, 20000.0, 1e-3)
-    kappa, v = geometric_feed_limit(d1, d2, paper, T)
+    kappa, v_chord, v_other = geometric_feed_limits(d1, d2, paper, T)
+    v = np.minimum(v_chord, v_other)
     assert kappa[0] == pytest.approx(1 / 5)
     assert v[0] == pytest.approx(chord_error_feed(kappa, 1e-3, T)[0])
     strict = Limits(
@@ -92,7 +93,8 @@ def test_optional_limits_are_off_by_default_and_apply_when_set():
         axis_vmax_mm_s=(10.0, 50.0),
         axis_amax_mm_s2=(800.0, 800.0),
     )
-    _, v2 = geometric_feed_limit(d1, d2, strict, T)
+    _, v2_chord, v2_other = geometric_feed_limits(d1, d2, strict, T)
+    v2 = np.minimum(v2_chord, v2_other)
     tangent = np.array([0.6, 0.8])
     expected = min(v[0], math.sqrt(500.0 * 5), 10.0 / tangent[0], math.sqrt(400.0 / (0.2 * 0.8)))
     assert v2[0] == pytest.approx(expected)
