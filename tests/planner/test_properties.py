@@ -62,78 +62,101 @@ def test_random_curves_keep_every_limit(curve, delta, vmax):
     assert_every_limit_holds(curve, delta, vmax)
 
 
-# Found by longer runs of the test above (its examples are fixed: derandomize).
-JERK_CASES = {
+# Found by longer runs of the test above (its examples are fixed: derandomize): each curve with
+# the chord error (mm) and vmax (mm/s) it failed at.
+FOUND_CASES = {
     # A line turning into a 1 mm radius at a knot: the curvature jumps, and the chord deficit
     # with it, within one step (1.06 J without planner.feed.curvature_jump_feed).
-    "curvature jump at a knot": NurbsCurve.from_arrays(
-        2,
-        np.array([[0, 0, 0], [0, 17, 4], [0, 17, 4], [0, 17, 4], [0, 18, 0], [0, 0, 1], [0, 0, 0]]),
-        np.array([0, 0, 0, 0.25, 0.25, 0.5, 0.75, 1, 1, 1]),
+    "curvature jump at a knot": (
+        NurbsCurve.from_arrays(
+            2,
+            np.array(
+                [[0, 0, 0], [0, 17, 4], [0, 17, 4], [0, 17, 4], [0, 18, 0], [0, 0, 1], [0, 0, 0]]
+            ),
+            np.array([0, 0, 0, 0.25, 0.25, 0.5, 0.75, 1, 1, 1]),
+        ),
+        1e-2,
+        100.0,
     ),
     # A tip whose limit is set by the chord-deficit jerk, the feed limit falling from 140 to
     # 15 mm/s within two steps: that limit must reach a whole step (1.055 J at half a step).
-    "tip bound by the chord deficit": NurbsCurve.from_arrays(
-        2,
-        np.array(
-            [[0, 0, 0], [0, 0, 0], [0, 0, 0], [7, 0, 0], [1.5, -11, 5], [1, -27, -23], [0, 0, 0]]
+    "tip bound by the chord deficit": (
+        NurbsCurve.from_arrays(
+            2,
+            np.array(
+                [
+                    [0, 0, 0],
+                    [0, 0, 0],
+                    [0, 0, 0],
+                    [7, 0, 0],
+                    [1.5, -11, 5],
+                    [1, -27, -23],
+                    [0, 0, 0],
+                ]
+            ),
+            np.array([0, 0, 0, 0.125, 0.21875, 0.59375, 0.78125, 1, 1, 1]),
+            np.array([1, 1, 1, 0.40625, 1.5, 2.75, 1]),
         ),
-        np.array([0, 0, 0, 0.125, 0.21875, 0.59375, 0.78125, 1, 1, 1]),
-        np.array([1, 1, 1, 0.40625, 1.5, 2.75, 1]),
+        1e-2,
+        100.0,
     ),
     # The curvature falls from 1/mm to 0 within 0.7 mm, faster than a tip of that radius: the
     # chord deficit changes faster than chord_deficit_feed assumes (1.09 J without
     # planner.feed.chord_deficit_change_feed).
-    "curvature falling to 0 within its radius": NurbsCurve.from_arrays(
-        3,
-        np.array([[0, 3], [0, 0], [5, 0], [0, 0], [0, 0]]),
-        np.array([0, 0, 0, 0, 0.0625, 1, 1, 1, 1]),
-        np.array([1, 0.5, 2, 1, 1]),
+    "curvature falling to 0 within its radius": (
+        NurbsCurve.from_arrays(
+            3,
+            np.array([[0, 3], [0, 0], [5, 0], [0, 0], [0, 0]]),
+            np.array([0, 0, 0, 0, 0.0625, 1, 1, 1, 1]),
+            np.array([1, 0.5, 2, 1, 1]),
+        ),
+        1e-2,
+        100.0,
     ),
-}
-
-
-@pytest.mark.parametrize("name", JERK_CASES)
-def test_curves_found_by_longer_runs_keep_every_limit(name):
-    assert_every_limit_holds(JERK_CASES[name], 1e-2, 100.0)
-
-
-def test_a_straight_stretch_that_meets_a_curve_at_a_knot_is_planned_to_the_end():
     # Degree 4: a straight line along x, then from the knot at u = 0.75 a curve turning back
     # towards (0, 1). At that knot the curvature is 0 on both sides; its curvature-jump limit
     # was the largest float instead of inf, and the checker's linear interpolation from there to
     # the next sample, 0.23 mm on, overflowed to -inf: the plan's speeds became infinite.
-    curve = NurbsCurve.from_arrays(
-        4,
-        np.array([[0, 0], [0, 0], [0, 0], [0, 0], [0, 0], [14, 0], [0, 1]]),
-        np.array([0, 0, 0, 0, 0, 0.05, 0.75, 1, 1, 1, 1, 1]),
-    )
-    assert_every_limit_holds(curve, 1e-2, 20.0)
-
-
-def test_the_limit_next_to_a_tip_is_sampled_where_it_changes_fast():
+    "a straight stretch meeting a curve at a knot": (
+        NurbsCurve.from_arrays(
+            4,
+            np.array([[0, 0], [0, 0], [0, 0], [0, 0], [0, 0], [14, 0], [0, 1]]),
+            np.array([0, 0, 0, 0, 0, 0.05, 0.75, 1, 1, 1, 1, 1]),
+        ),
+        1e-2,
+        20.0,
+    ),
     # A tip of 2 mm/s at 0.1 µm inside a grid interval whose ends have alike limits: the
     # interval was not halved, and the limit, concave on either side of the tip, was
     # interpolated linearly over the 0.056 mm from the tip's neighbour to the grid (1.018 delta).
-    curve = NurbsCurve.from_arrays(
-        5,
-        np.array(
-            [
-                [0, 0],
-                [-1, 12],
-                [-1, 12],
-                [-1.5, 9.9375],
-                [0, 16.5],
-                [-17, 0],
-                [0, 2],
-                [0, 0],
-                [0, 0],
-            ]
+    "a tip inside a grid interval with alike ends": (
+        NurbsCurve.from_arrays(
+            5,
+            np.array(
+                [
+                    [0, 0],
+                    [-1, 12],
+                    [-1, 12],
+                    [-1.5, 9.9375],
+                    [0, 16.5],
+                    [-17, 0],
+                    [0, 2],
+                    [0, 0],
+                    [0, 0],
+                ]
+            ),
+            np.array([0, 0, 0, 0, 0, 0, 0.05078125, 0.3046875, 0.3125, 1, 1, 1, 1, 1, 1]),
+            np.array([1, 0.3125, 0.3125, 0.3125, 0.3125, 0.3125, 1, 1, 1]),
         ),
-        np.array([0, 0, 0, 0, 0, 0, 0.05078125, 0.3046875, 0.3125, 1, 1, 1, 1, 1, 1]),
-        np.array([1, 0.3125, 0.3125, 0.3125, 0.3125, 0.3125, 1, 1, 1]),
-    )
-    assert_every_limit_holds(curve, 1e-4, 100.0)
+        1e-4,
+        100.0,
+    ),
+}
+
+
+@pytest.mark.parametrize("name", FOUND_CASES)
+def test_curves_found_by_longer_runs_keep_every_limit(name):
+    assert_every_limit_holds(*FOUND_CASES[name])
 
 
 def test_the_motion_leaves_a_stop_where_a_span_has_zero_length():
