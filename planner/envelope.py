@@ -39,7 +39,7 @@ from planner.feed import (
     geometric_feed_limits,
     singular_floor_feed,
 )
-from planner.nurbs import NurbsCurve
+from planner.nurbs import PARAMETER_RESOLUTION_MM, NurbsCurve
 from planner.types import Limits
 
 #: Target spacing of the envelope grid along the path, mm.
@@ -57,6 +57,9 @@ MIN_FEED_MM_S = 1e-6
 CORNER_COS_TOL = 1e-12
 #: Ternary-search steps locating a cusp inside a span.
 CUSP_SEARCH_STEPS = 60
+#: |C'| at a cusp, relative to the larger |C'| at the ends of its grid interval, below which
+#: the tangent's reversal is a cusp (a stop); the search ends about 1e-11 from a true cusp.
+CUSP_SPEED_RTOL = 1e-6
 #: Rounds and points per round of the search of a curvature maximum between its grid
 #: neighbours (each round shrinks the bracket to 2 / (points + 1) of it).
 PEAK_SEARCH_STEPS, PEAK_SEARCH_POINTS = 6, 9
@@ -94,6 +97,30 @@ def range_minima(padded: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarr
     after the highest bound, or the last of them would run to its end."""
     bounds = np.stack([lo, hi], axis=1).ravel()
     return np.minimum.reduceat(padded[: bounds.max() + 1], bounds)[::2]
+
+
+def _snapped_to_stops(s_mm: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """Ascending ``s_mm`` with the samples within PARAMETER_RESOLUTION_MM of a stop moved onto
+    it (merged with it by the caller).
+
+    At a cusp C'(u) = 0: the curvature of the samples the corner grid puts next to it is
+    round-off (|C'| vanishes), and their feed limit falls to the singular floor even where the
+    curve runs straight into the cusp and back. Reached by every step towards the cusp, they
+    held each sample to its distance from them over a period (v <= d / T): the motion crept
+    into the cusp and out again, about 40 ms per cusp at the bench's limits. Closer than the
+    planner's resolution, they are the cusp.
+    """
+    stop_s = s_mm[stop]
+    if stop_s.size == 0:
+        return s_mm
+    after = np.searchsorted(stop_s, s_mm).clip(max=stop_s.size - 1)
+    before = (after - 1).clip(min=0)
+    nearest = np.where(
+        np.abs(stop_s[before] - s_mm) < np.abs(stop_s[after] - s_mm),
+        stop_s[before],
+        stop_s[after],
+    )
+    return np.where(np.abs(nearest - s_mm) <= PARAMETER_RESOLUTION_MM, nearest, s_mm)
 
 
 class FeedEnvelope:
@@ -235,6 +262,7 @@ class FeedEnvelope:
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
         v[v.min(axis=1) < MIN_FEED_MM_S] = 0.0
+        s = _snapped_to_stops(s, v.min(axis=1) <= 0.0)
         fresh = np.concatenate([[True], np.diff(s) > 0.0])
         starts = np.flatnonzero(fresh)
         v = np.minimum.reduceat(v, starts)
@@ -287,7 +315,9 @@ class FeedEnvelope:
         """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).
 
         Found where consecutive samples' tangents (``d1``, C' at u) turn by more than 60
-        degrees, by ternary search of the smallest |C'| between them.
+        degrees, by ternary search of the smallest |C'| between them, and kept where that is
+        round-off (``CUSP_SPEED_RTOL``): a near-cusp taken for one was a stop where the plan
+        could pass its tip at about 2.5 mm/s, some 30 ms lost at the bench's limits.
         """
         dots = np.sum(d1[:-1] * d1[1:], axis=1)
         norms = np.linalg.norm(d1[:-1], axis=1) * np.linalg.norm(d1[1:], axis=1)
@@ -302,7 +332,13 @@ class FeedEnvelope:
             hi = np.where(left, b, hi)
             lo = np.where(left, lo, a)
         mid = 0.5 * (lo + hi)
-        reverses = dots[turn] < 0.0
+        # A tangent that reverses at a speed still above round-off is a near-cusp: a tip that
+        # the curvature maxima plan at its own radius, not a stop.
+        tip_speed = np.linalg.norm(self._curve.evaluate(mid, order=1)[1], axis=1)
+        end_speed = np.sqrt(
+            np.maximum(np.sum(d1[turn] ** 2, axis=1), np.sum(d1[turn + 1] ** 2, axis=1))
+        )
+        reverses = (dots[turn] < 0.0) & (tip_speed <= CUSP_SPEED_RTOL * end_speed)
         return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
 
     def _tight_midpoints(

@@ -14,6 +14,7 @@ from pathlib import Path as FilePath
 
 import curve_families as cf
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from test_properties import assert_every_limit_holds, assert_joined_motion_keeps_every_limit
@@ -98,6 +99,26 @@ def test_a_near_cusp_is_passed_at_its_own_radius():
     tips = (kappa > 30.0) & np.isfinite(kappa)
     assert tips.any()
     assert block.feed_mm_s[tips].max() > 1.5
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_motion_rests_at_the_exact_folds_alone_and_briefly(seed):
+    # An exact fold (a repeated control point) reverses with C'(u) = 0: a cusp, where the
+    # motion rests. A near fold reverses at speed, a tip passed at its own radius; its turn
+    # within one grid interval used to be taken for a cusp. Next to an exact fold, samples whose
+    # curvature was round-off held the motion to its distance from them over a period: it
+    # crept in and out, 11-14 periods below 1 mm/s. A jerk-limited stop from 1 mm/s and the
+    # start back to it take sqrt(2 / J) = 10 ms each: 5 periods, 6 with the rest's own row.
+    curve = cf.cusp_curve(seed)
+    exact_folds = int(np.all(np.diff(curve.control_points, axis=0) == 0.0, axis=1).sum())
+    limits = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-3)
+    feed = plan_setpoints(Path(curve, limits, T), limits, T).feed_mm_s
+    rests = np.flatnonzero(feed[1:-1] == 0.0) + 1
+    assert rests.size == exact_folds > 0
+    slow = np.flatnonzero(feed >= 1.0)
+    for rest in rests:
+        before, after = slow[slow < rest].max(), slow[slow > rest].min()
+        assert after - before - 1 <= 7
 
 
 def test_first_block_builds_only_the_start_of_a_long_curve():
