@@ -247,6 +247,35 @@ def test_a_start_too_fast_for_a_staircase_brakes_in_onesegment_plan():
     assert w.braking and w.peak_cap[0] <= 10.0
 
 
+def test_a_pin_before_a_point_of_zero_acceleration_settles_below_that_point():
+    # A pin braking along the limit, 0.1 mm before the limit's minimum (a point of zero
+    # acceleration): turning round to that point's own speed takes about 0.23 mm, settling
+    # below it 0.06 mm. The scan used to ask for the former and refuse the pin; unpinning it
+    # then refused the pin before it, and so on back along the limit's falling flank.
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    v, bad = passes(
+        [0.0, 1.0, 1.1, 2.0],
+        [0.0, 12.0, 12.5, 0.0],
+        12.0,
+        lim,
+        acc=[0.0, -100.0, 0.0, 0.0],
+        pinned=[False, True, False, False],
+    )
+    assert bad is None
+    assert v[1] == 12.0 and 12.0 - 100.0**2 / (2.0 * lim.J) <= v[2] < 12.0
+
+
+def test_a_pin_the_scan_cannot_honour_at_its_flat_cap_keeps_it_with_less_acceleration():
+    # The same pin 0.025 mm before the minimum: settling from -100 mm/s² takes 0.06 mm. At its
+    # flat cap already it cannot be lowered, so it used to lose its acceleration at once and
+    # drag the pins before it down with it; half the acceleration settles within 0.025 mm.
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    w = Window([0.0, 1.0, 1.025, 2.0], [0.0, 12.0, 12.5, 0.0], [False, False, False])
+    w.pinned[1], w.acc[1] = True, -100.0
+    v = w.speeds(12.0, lim)
+    assert w.pinned[1] and w.acc[1] == -25.0 and v[1] == 12.0
+
+
 def test_envelope_dilation_is_exact_between_samples(path):
     # A limit falling linearly, f(s) = a - b s, on an uneven grid. As the chord-error feed, the
     # middle of a step of w T from s meets f = w where a - b (s + w T / 2) = w, so
