@@ -15,7 +15,7 @@ stopping its acceleration at every point; the segments on either side are genera
 motions (:mod:`planner.profiles.transition`). A point the scan cannot honour is lowered, then
 falls back to zero acceleration under the cap that keeps a zero-acceleration point below the
 limit around it (:meth:`planner.checker.Checker.end_cap`); one at that cap already keeps it
-with half its acceleration first (:meth:`planner.window.Window.speeds`).
+with less acceleration first (:meth:`planner.window.Window.speeds`).
 
 Units: s in mm, feeds mm/s. Pure computation; not thread-safe (it edits the window).
 """

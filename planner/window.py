@@ -194,10 +194,10 @@ class Window:
         self, v_start: float, lim: PlanLimits, caps: list[float] | None = None
     ) -> list[float]:
         """Speeds of the points by :func:`passes`, lowering the pinned points it cannot honour
-        (halfway to their flat cap; one at its flat cap keeps half its acceleration instead, as
-        a pin just before the limit's minimum needs: ``PIN_RETRIES`` times, then unpinned, which
-        tends to refuse the pins before it in turn); with other ``caps`` (a look at the plan
-        without the stop at the window end) the window is left as it is."""
+        (halfway to their flat cap ``PIN_RETRIES`` times, then halving their acceleration as
+        often, as a pin just before the limit's minimum needs; then unpinned, which tends to
+        refuse the pins before it in turn); with other ``caps`` (a look at the plan without the
+        stop at the window end) the window is left as it is."""
         keep = caps is not None
         caps = list(self.cap if caps is None else caps)
         acc, pinned = list(self.acc), list(self.pinned)
@@ -214,9 +214,10 @@ class Window:
                 acc[bad] *= lower / caps[bad]
                 caps[bad] = lower
                 tries[bad] += 1
-            elif tries[bad] < PIN_RETRIES:
-                # At its flat cap: settle sooner (the bench's loops measured 1.038-1.050 of
-                # their reference with these pins unpinned, 1.036-1.045 with them kept).
+            elif tries[bad] < 2 * PIN_RETRIES:
+                # At (or lowered towards) its flat cap: settle sooner. The bench's loops
+                # measured 1.038-1.050 of their reference with these pins unpinned at once,
+                # 1.032-1.040 with them kept.
                 acc[bad] *= 0.5
                 tries[bad] += 1
             else:
@@ -258,7 +259,8 @@ def passes(
                 # pin just before a minimum of the limit settles below it.
                 fits = highest_end_speed(cap[k], acc[k], L, back[k + 1], A, J) is not None
             if not fits:
-                return back, k
+                # Of two pins too far apart in feed, the faster one gives way.
+                return back, k + 1 if pinned[k + 1] and cap[k + 1] > cap[k] else k
             continue
         if acc[k + 1] == 0.0:
             back[k] = min(cap[k], max_ramp_speed(back[k + 1], L, A, J))

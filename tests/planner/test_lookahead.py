@@ -265,6 +265,26 @@ def test_a_pin_before_a_point_of_zero_acceleration_settles_below_that_point():
     assert v[1] == 12.0 and 12.0 - 100.0**2 / (2.0 * lim.J) <= v[2] < 12.0
 
 
+@pytest.mark.parametrize("rising", [True, False])
+def test_of_two_pins_too_far_apart_in_feed_the_faster_one_gives_way(rising):
+    # 20 and 38 mm/s pinned 1 mm apart on a limit steeper than the plan can follow. Lowering
+    # the slower pin of a rising pair only widens the gap: the scan used to name the earlier
+    # pin whatever the direction, and the faster one then fell to its flat cap.
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    caps, acc = [20.0, 38.0], [128.0, 619.0]
+    if not rising:
+        caps, acc = caps[::-1], [-a for a in acc[::-1]]
+    _, bad = passes(
+        [0.0, 1.0, 2.0, 6.0],
+        [0.0, *caps, 0.0],
+        caps[0],
+        lim,
+        acc=[0.0, *acc, 0.0],
+        pinned=[False, True, True, False],
+    )
+    assert bad == (2 if rising else 1)
+
+
 def test_a_pin_the_scan_cannot_honour_at_its_flat_cap_keeps_it_with_less_acceleration():
     # The same pin 0.025 mm before the minimum: settling from -100 mm/s² takes 0.06 mm. At its
     # flat cap already it cannot be lowered, so it used to lose its acceleration at once and
