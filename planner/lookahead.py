@@ -168,6 +168,7 @@ def plan_segments(
     brake_mm = braking_distance_mm(v, A, J) * (1.0 + 1e-9) + 1e-9
     stop_at = arc.extent_mm(s + brake_mm) if stop else math.inf
     extra = 0.0
+    rest_mm = None  # where the plan that released s comes to rest (the last window's end)
     while True:
         # The curve's end, once it is within reach of this window (the table grows to there).
         horizon = s + window_mm + extra + TAIL_WINDOW_FRACTION * window_mm
@@ -189,7 +190,7 @@ def plan_segments(
             fv.append(False)
         else:
             cap[-1] = 0.0
-        w = Window(pts, cap, fv, None if plans is None else plans.for_limits(lim))
+        w = Window(pts, cap, fv, None if plans is None else plans.for_limits(lim), rest_mm)
         initial_s = frozenset(w.s)
         if refined is not None and warm_start:
             refined.seed(w, lim.vmax_mm_s)
@@ -221,3 +222,4 @@ def plan_segments(
         window_mm = full_window_mm
         yield segments
         s, v = segments[-1].s_end_mm, segments[-1].v_end_mm_s
+        rest_mm = s_end

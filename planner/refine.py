@@ -71,7 +71,31 @@ def refine(
 
     ``between_rounds`` is called after each round: a caller planning ahead in the background
     may do urgent work there (of its own, never with this plan).
+
+    A start too fast for the window's points brakes in one segment (:func:`brake_first`). Where
+    even that exceeds the limit, and the window knows where the plan that released the start
+    state comes to rest (:attr:`Window.rest_mm`), the motion stops there instead, and the
+    window is refined again: that plan, from this state, kept under the limit to its rest.
+    (Braking to a tip's feed at zero acceleration can take up to A³ / (8 J²) more than
+    stopping just before it: a window that ended just before a tip released a state from
+    which the tip could not be met, and the braking segment ran over the limit, 1.35 delta and
+    1.56 J on the setpoints, then held the tip's feed to the window's end.)
     """
+    v, holds = _refined(w, checker, v_start, lim, between_rounds)
+    if not holds and w.braking and w.rest_mm is not None and w.s[0] < w.rest_mm < w.s[-1]:
+        w.rest_first()
+        v, _ = _refined(w, checker, v_start, lim, between_rounds)
+    return v
+
+
+def _refined(
+    w: Window,
+    checker: Checker,
+    v_start: float,
+    lim: PlanLimits,
+    between_rounds: Callable[[], None] | None,
+) -> tuple[list[float], bool]:
+    """The rounds of :func:`refine`: the speeds, and whether every segment holds."""
     verdicts: dict[tuple, tuple[float, float] | None] = {}
     v = w.speeds(v_start, lim)
     for flatten in (False, True):
@@ -85,7 +109,7 @@ def refine(
                 v = w.speeds(v_start, lim)
             failing = _failing(w, v, checker, lim, verdicts)
             if not failing:
-                return v
+                return v, True
             changed = False
             for k, bad in failing:
                 if flatten:
@@ -97,7 +121,7 @@ def refine(
                 between_rounds()
             if not changed or (not flatten and len(w.s) > MAX_WINDOW_POINTS):
                 break
-    return v
+    return v, False
 
 
 def _flatten(w: Window, k: int, checker: Checker) -> bool:

@@ -21,6 +21,7 @@ stretch, not thread-safe.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import math
 from dataclasses import dataclass
@@ -118,6 +119,7 @@ class Window:
         cap: list[float],
         fv_plan: list[bool],
         plans: _Plans | None = None,
+        rest_mm: float | None = None,
     ) -> None:
         self.s = s
         self.cap = cap
@@ -128,6 +130,9 @@ class Window:
         self.peak_cap = [math.inf] * (len(s) - 1)
         self.cosine = [0] * (len(s) - 1)  # 0: S-curve, 1: cosine, 2: cosine rejected
         self.braking = False  # the first segment brakes from the start state (brake_first)
+        # Where the plan that released the start state comes to rest (the previous window's
+        # end), if known: from the start state, a stop there keeps under the limit.
+        self.rest_mm = rest_mm
         # Planned phases and top feed of each segment shape met so far (see key), in this window
         # or, given ``plans`` (:meth:`SegmentPlans.for_limits`), in any with the same limits.
         self.plans: _Plans = {} if plans is None else plans
@@ -180,6 +185,14 @@ class Window:
             ) is None:
                 return k + 1 if pinned[k + 1] else k
         return None
+
+    def rest_first(self) -> None:
+        """Replace the points up to :attr:`rest_mm` with a stop there (see
+        :func:`planner.refine.refine`)."""
+        m = bisect.bisect_right(self.s, self.rest_mm)
+        self.merge_first(m, math.inf)
+        self.insert(0, self.rest_mm, 0.0)
+        self.braking = False
 
     def merge_first(self, m: int, peak_cap: float) -> None:
         """Remove the points between the start and point m: one segment, held under peak_cap."""
