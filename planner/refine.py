@@ -73,16 +73,17 @@ def refine(
     may do urgent work there (of its own, never with this plan).
 
     A start too fast for the window's points brakes in one segment (:func:`brake_first`). Where
-    even that exceeds the limit, and the window knows where the plan that released the start
-    state comes to rest (:attr:`Window.rest_mm`), the motion stops there instead, and the
-    window is refined again: that plan, from this state, kept under the limit to its rest.
+    the segments still exceed the limit after all rounds, and the window knows where the plan
+    that released the start state comes to rest (:attr:`Window.rest_mm`), the motion stops
+    there instead, and the window is refined again: that plan, from this state, kept under the
+    limit to its rest.
     (Braking to a tip's feed at zero acceleration can take up to A³ / (8 J²) more than
     stopping just before it: a window that ended just before a tip released a state from
     which the tip could not be met, and the braking segment ran over the limit, 1.35 delta and
     1.56 J on the setpoints, then held the tip's feed to the window's end.)
     """
     v, holds = _refined(w, checker, v_start, lim, between_rounds)
-    if not holds and w.braking and w.rest_mm is not None and w.s[0] < w.rest_mm < w.s[-1]:
+    if not holds and w.rest_mm is not None and w.s[0] < w.rest_mm < w.s[-1]:
         w.rest_first()
         v, _ = _refined(w, checker, v_start, lim, between_rounds)
     return v
