@@ -65,6 +65,9 @@ CUSP_SPEED_RTOL = 1e-6
 PEAK_SEARCH_STEPS, PEAK_SEARCH_POINTS = 6, 9
 #: Relative change of the curvature across a bracket below which its peak is resolved.
 PEAK_FLAT_RTOL = 1e-5
+#: Ternary-search steps locating where a tangent component peaks between grid samples (the
+#: bracket shrinks to 3e-4 of two grid intervals, where the component is flat).
+AXIS_SEARCH_STEPS = 20
 #: Halvings of the grid towards a sharp corner (C'(u) = 0).
 CORNER_REFINEMENTS = 30
 #: The envelope dilation assumes feed overrides up to this ratio of the path's vmax.
@@ -256,6 +259,9 @@ class FeedEnvelope:
             width = 0.1 * (u[i] - u[i - 1])
             trio = np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1])
             extras.append(self._sampled(trio.ravel()))
+        aligned = self._axis_alignments(u, d1)
+        if aligned.size:
+            extras.append(self._sampled(aligned))
         cusps = self._cusps(u, d1)
         if cusps.size:
             # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
@@ -319,6 +325,35 @@ class FeedEnvelope:
         columns = [np.concatenate(column) for column in zip(*parts, strict=True)]
         order = np.argsort(columns[0], kind="stable")
         return tuple(column[order] for column in columns)
+
+    def _axis_alignments(self, u: np.ndarray, d1: np.ndarray) -> np.ndarray:
+        """Parameters where a component of the unit tangent peaks between grid samples, with
+        per-axis feed limits configured (none otherwise).
+
+        There V_k / |t_k| is lowest, and flat: interpolated linearly from the grid, the limit
+        missed that minimum by 1 % where a tangent turned through an axis's direction between
+        two samples. Found where |t_k| at a sample is above its neighbours', by ternary search
+        between them.
+        """
+        if self._planning_limits.axis_vmax_mm_s is None or len(u) < 3:
+            return np.empty(0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = np.abs(d1) / np.linalg.norm(d1, axis=1)[:, None]
+        rows, axes = np.nonzero((t[1:-1] > t[:-2]) & (t[1:-1] >= t[2:]))
+        lo, hi = u[rows], u[rows + 2]
+
+        def component(at: np.ndarray) -> np.ndarray:
+            d = self._curve.evaluate(at, order=1)[1]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                return np.abs(d[np.arange(len(at)), np.tile(axes, 2)]) / np.linalg.norm(d, axis=1)
+
+        for _ in range(AXIS_SEARCH_STEPS):
+            a, b = lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0
+            both = component(np.concatenate([a, b]))
+            left = both[: a.size] > both[a.size :]
+            hi = np.where(left, b, hi)
+            lo = np.where(left, lo, a)
+        return 0.5 * (lo + hi)
 
     def _cusps(self, u: np.ndarray, d1: np.ndarray) -> np.ndarray:
         """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).

@@ -186,6 +186,27 @@ def test_curves_found_by_longer_runs_keep_every_limit(name):
     assert_every_limit_holds(*FOUND_CASES[name])
 
 
+def test_a_tangent_turning_through_an_axis_between_grid_samples_keeps_that_axis_feed():
+    # Found by a longer run with per-axis feed limits: the tangent turns through -x between two
+    # grid samples, where V_x / |t_x| has its minimum, flat; interpolated linearly from the
+    # grid, the limit missed it, and the x axis moved at 10.106 mm/s against its 10.
+    curve = NurbsCurve.from_arrays(
+        5,
+        np.array([[16, 0], [3, -15], [11, -0.5], [0, 0], [6, 0], [0, -26], [0, 0]]),
+        np.array([0, 0, 0, 0, 0, 0, 0.25, 1, 1, 1, 1, 1, 1]),
+        np.array([1.5, 0.5625, 2, 0.5, 1, 1, 1]),
+    )
+    limits = Limits(
+        vmax_mm_s=20.0,
+        amax_mm_s2=1000.0,
+        jmax_mm_s3=20000.0,
+        chord_error_mm=1e-3,
+        axis_vmax_mm_s=(10.0, 10.0),
+    )
+    block = plan_setpoints(Path(curve, limits, T), limits, T)
+    assert np.abs(np.diff(block.position_mm, axis=0)).max() / T <= 10.0 * 1.001
+
+
 def test_a_window_ending_just_before_a_tip_is_followed_by_a_prompt_motion():
     # 63.5 mm: it took 20.96 s, 22 mm of it at the tip's 1.12 mm/s; 1.27 s now.
     assert assert_every_limit_holds(*FOUND_CASES["a window ending just before a tip"]) < 2.0
