@@ -57,8 +57,8 @@ MIN_FEED_MM_S = 1e-6
 CORNER_COS_TOL = 1e-12
 #: Ternary-search steps locating a cusp inside a span.
 CUSP_SEARCH_STEPS = 60
-#: |C'| at a cusp, relative to the larger |C'| at the ends of its grid interval, below which
-#: the tangent's reversal is a cusp (a stop); the search ends about 1e-11 from a true cusp.
+#: |C'| where a tangent reverses, relative to the largest |C'| on the chunk's grid, below which
+#: the reversal is a cusp (a stop); the search ends about 1e-11 from a true cusp.
 CUSP_SPEED_RTOL = 1e-6
 #: Rounds and points per round of the search of a curvature maximum between its grid
 #: neighbours (each round shrinks the bracket to 2 / (points + 1) of it).
@@ -361,7 +361,8 @@ class FeedEnvelope:
         Found where consecutive samples' tangents (``d1``, C' at u) turn by more than 60
         degrees, by ternary search of the smallest |C'| between them, and kept where that is
         round-off (``CUSP_SPEED_RTOL``): a near-cusp taken for one was a stop where the plan
-        could pass its tip at about 2.5 mm/s, some 30 ms lost at the bench's limits.
+        could pass its tip at about 2.5 mm/s, some 30 ms lost at the bench's limits. A
+        reversal taken for a near-cusp is passed at speed, so the scale errs towards a stop.
         """
         dots = np.sum(d1[:-1] * d1[1:], axis=1)
         norms = np.linalg.norm(d1[:-1], axis=1) * np.linalg.norm(d1[1:], axis=1)
@@ -379,10 +380,10 @@ class FeedEnvelope:
         # A tangent that reverses at a speed still above round-off is a near-cusp: a tip that
         # the curvature maxima plan at its own radius, not a stop.
         tip_speed = np.linalg.norm(self._curve.evaluate(mid, order=1)[1], axis=1)
-        end_speed = np.sqrt(
-            np.maximum(np.sum(d1[turn] ** 2, axis=1), np.sum(d1[turn + 1] ** 2, axis=1))
-        )
-        reverses = (dots[turn] < 0.0) & (tip_speed <= CUSP_SPEED_RTOL * end_speed)
+        # Against the chunk's largest |C'|, not the interval's: inside a span of zero length
+        # (a repeated control point) the ends' |C'| is round-off too.
+        scale = np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
+        reverses = (dots[turn] < 0.0) & (tip_speed <= CUSP_SPEED_RTOL * scale)
         return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
 
     def _tight_midpoints(

@@ -151,6 +151,20 @@ FOUND_CASES = {
         1e-4,
         100.0,
     ),
+    # Degree 1: up 4.6 mm and back down, the turn a span of zero length (a repeated control
+    # point), where |C'| is round-off (1e-14) at every grid sample. A reversal counted as a
+    # cusp only where |C'| was round-off against the grid interval's ends, which are inside
+    # that span here: the plan passed through the turn at 20 mm/s (9.4 J, 30 delta).
+    "a reversal across a span of zero length": (
+        NurbsCurve.from_arrays(
+            1,
+            np.array([[0, 0], [0, 4.64453125], [0, 4.64453125], [0, 0], [0, 0], [0, 0]]),
+            np.array([0, 0, 0.208984375, 0.314453125, 0.5, 0.75, 1, 1]),
+            np.array([1, 0.3, 2.5390625, 1, 1, 1]),
+        ),
+        1e-4,
+        20.0,
+    ),
     # Degree 5, near folds: the first window ended 4 µm before a tip of 1.12 mm/s and released
     # 100 mm/s 7.5 mm before it, enough to stop at the window's end but not to meet the tip at
     # zero acceleration. The next window's braking segment ran over the limit (1.35 delta,
