@@ -178,9 +178,13 @@ class Window:
     def _shapeless(
         self, v: list[float], acc: list[float], pinned: list[bool], lim: PlanLimits
     ) -> int | None:
-        """The pinned end of the first segment with no motion of the shapes tried, or None."""
+        """The pinned end of the first segment with no motion of the shapes tried, or None.
+
+        Every segment touching a pin is tried, a pin without acceleration (on a flat limit)
+        too: the scan gives a pin its cap whether or not the segment before reaches it.
+        """
         for k in range(len(self.s) - 1):
-            if (acc[k] != 0.0 or acc[k + 1] != 0.0) and _shape(
+            if (acc[k] != 0.0 or acc[k + 1] != 0.0 or pinned[k] or pinned[k + 1]) and _shape(
                 self, self.s, k, v, acc, lim
             ) is None:
                 return k + 1 if pinned[k + 1] else k

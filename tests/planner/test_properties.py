@@ -221,6 +221,28 @@ def test_a_tangent_turning_through_an_axis_between_grid_samples_keeps_that_axis_
     assert np.abs(np.diff(block.position_mm, axis=0)).max() / T <= 10.0 * 1.001
 
 
+def test_a_pin_on_a_flat_limit_is_reached_by_the_segment_before_it():
+    # Up 1 mm along z, a corner, then on towards y under per-axis feed limits: the limit is
+    # flat there (V / |t_y|), so a point pinned on it has no acceleration, and the scan gave
+    # it its cap without checking that the ramp from the corner reaches it. The ramp took
+    # 3.7 µm more than its segment: a short step on the setpoints, 5.2 J.
+    curve = NurbsCurve.from_arrays(
+        2,
+        np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 1], [0, 0, 1], [0, 4, 0]]),
+        np.array([0, 0, 0, 0.125, 0.25, 0.25, 0.5, 1, 1, 1]),
+    )
+    limits = Limits(
+        vmax_mm_s=100.0,
+        amax_mm_s2=1000.0,
+        jmax_mm_s3=20000.0,
+        chord_error_mm=1e-4,
+        axis_vmax_mm_s=(11.0, 11.0, 11.0),
+    )
+    block = plan_setpoints(Path(curve, limits, T), limits, T)
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05 and fig.max_accel_mm_s2 <= 1000.0 * 1.02
+
+
 def test_a_window_ending_just_before_a_tip_is_followed_by_a_prompt_motion():
     # 63.5 mm: it took 20.96 s, 22 mm of it at the tip's 1.12 mm/s; 1.27 s now.
     assert assert_every_limit_holds(*FOUND_CASES["a window ending just before a tip"]) < 2.0
