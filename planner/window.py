@@ -181,12 +181,20 @@ class Window:
         """The pinned end of the first segment with no motion of the shapes tried, or None.
 
         Every segment touching a pin is tried, a pin without acceleration (on a flat limit)
-        too: the scan gives a pin its cap whether or not the segment before reaches it.
+        too: the scan gives a pin its cap whether or not the segment before reaches it. Such a
+        segment is an S-curve (:func:`segment_plan`), which needs its ramp to fit.
         """
         for k in range(len(self.s) - 1):
-            if (acc[k] != 0.0 or acc[k + 1] != 0.0 or pinned[k] or pinned[k + 1]) and _shape(
-                self, self.s, k, v, acc, lim
-            ) is None:
+            if acc[k] != 0.0 or acc[k + 1] != 0.0:
+                shapeless = _shape(self, self.s, k, v, acc, lim) is None
+            elif pinned[k] or pinned[k + 1]:
+                L = self.s[k + 1] - self.s[k]
+                shapeless = ramp_distance_mm(v[k], v[k + 1], lim.A, lim.J) > L * (
+                    1.0 + RAMP_FIT_RTOL
+                )
+            else:
+                continue
+            if shapeless:
                 return k + 1 if pinned[k + 1] else k
         return None
 
