@@ -15,9 +15,13 @@ from pathlib import Path as FilePath
 import curve_families as cf
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
-from test_properties import assert_a_replan_keeps_every_limit, assert_every_limit_holds
+from test_properties import (
+    assert_a_replan_keeps_every_limit,
+    assert_every_limit_holds,
+    derandomized,
+)
 
 from planner.nurbs import NurbsCurve
 from planner.stream import Path, plan_setpoints, stream_setpoints
@@ -40,17 +44,7 @@ def family_curves(draw) -> NurbsCurve:
     return cf.loop_curve(seed, steps=draw(st.integers(degree + 1, 12)), dim=dim, degree=degree)
 
 
-def family_settings(max_examples: int) -> settings:
-    """Derandomized, so that CI sees the same examples on every run; plans take their time."""
-    return settings(
-        max_examples=max_examples,
-        deadline=None,
-        derandomize=True,
-        suppress_health_check=[HealthCheck.too_slow],
-    )
-
-
-@family_settings(400)
+@derandomized(400)
 @given(
     curve=family_curves(),
     delta=st.sampled_from([1e-4, 1e-3, 1e-2]),
@@ -60,7 +54,7 @@ def test_curve_families_keep_every_limit(curve, delta, vmax):
     assert_every_limit_holds(curve, delta, vmax)
 
 
-@family_settings(240)
+@derandomized(240)
 @given(
     curve=family_curves(),
     delta=st.sampled_from([1e-4, 1e-3, 1e-2]),

@@ -46,15 +46,20 @@ def curves(draw) -> NurbsCurve:
         raise
 
 
+def derandomized(max_examples: int) -> settings:
+    """The same examples on every run, so that CI is reproducible; plans take their time."""
+    return settings(
+        max_examples=max_examples,
+        deadline=None,
+        derandomize=True,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+    )
+
+
 # derandomize: the same examples on every run, so that CI is reproducible. Control polygons fold
 # back and loop freely, so cusps and loops far tighter than delta occur. 400 examples (about
 # 25 s): with 60, the curves found by the longer runs below were all missed.
-@settings(
-    max_examples=400,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
-)
+@derandomized(400)
 @given(
     curve=curves(), delta=st.sampled_from([1e-4, 1e-3, 1e-2]), vmax=st.sampled_from([20.0, 100.0])
 )
@@ -66,12 +71,7 @@ def test_random_curves_keep_every_limit(curve, delta, vmax):
 # acceleration), each axis checked on the joined motion too. Derandomized, 100 examples (about
 # 40 s); a longer run found a pin on a flat per-axis limit whose segment before it went
 # unchecked (5.2 J; the found case below).
-@settings(
-    max_examples=100,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
-)
+@derandomized(100)
 @given(
     curve=curves(),
     delta=st.sampled_from([1e-4, 1e-3, 1e-2]),
