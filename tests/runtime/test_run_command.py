@@ -113,4 +113,5 @@ def test_demo_with_a_drive_faulted_at_power_on_says_so_and_exits_1(tmp_path: Pat
     )
     assert done.returncode == 1, done.stdout + done.stderr
     assert "Traceback" not in done.stderr
-    assert "softmotion: drives not enabled: error stop: axis Y: drive in FAULT" in done.stderr
+    assert "softmotion: drives not enabled: error stop: axis Y: " in done.stderr
+    assert "0x8130" in done.stderr  # the cause the drive gives, in its EMCY or in 0x603F
