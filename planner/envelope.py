@@ -28,6 +28,7 @@ Invariants: samples are ascending in s; a zero limit is a stop; no NaN.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -97,6 +98,24 @@ def range_minima(padded: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarr
     after the highest bound, or the last of them would run to its end."""
     bounds = np.stack([lo, hi], axis=1).ravel()
     return np.minimum.reduceat(padded[: bounds.max() + 1], bounds)[::2]
+
+
+def ternary_minima(
+    lo: np.ndarray,
+    hi: np.ndarray,
+    value: Callable[[np.ndarray], np.ndarray],
+    steps: int,
+) -> np.ndarray:
+    """Where ``value`` is lowest in each bracket ``[lo, hi]`` (unimodal there), to the bracket
+    left after ``steps`` thirds. ``value`` takes every bracket's two inner points at once:
+    the left ones, then the right ones."""
+    for _ in range(steps):
+        a, b = lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0
+        both = value(np.concatenate([a, b]))
+        left = both[: a.size] < both[a.size :]
+        hi = np.where(left, b, hi)
+        lo = np.where(left, lo, a)
+    return 0.5 * (lo + hi)
 
 
 def _lower_part(v: np.ndarray) -> np.ndarray:
@@ -339,18 +358,12 @@ class FeedEnvelope:
         rows, axes = np.nonzero((t[1:-1] > t[:-2]) & (t[1:-1] >= t[2:]))
         lo, hi = u[rows], u[rows + 2]
 
-        def component(at: np.ndarray) -> np.ndarray:
+        def less_component(at: np.ndarray) -> np.ndarray:
             d = self._curve.evaluate(at, order=1)[1]
             with np.errstate(invalid="ignore", divide="ignore"):
-                return np.abs(d[np.arange(len(at)), np.tile(axes, 2)]) / np.linalg.norm(d, axis=1)
+                return -np.abs(d[np.arange(len(at)), np.tile(axes, 2)]) / np.linalg.norm(d, axis=1)
 
-        for _ in range(AXIS_SEARCH_STEPS):
-            a, b = lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0
-            both = component(np.concatenate([a, b]))
-            left = both[: a.size] > both[a.size :]
-            hi = np.where(left, b, hi)
-            lo = np.where(left, lo, a)
-        return 0.5 * (lo + hi)
+        return ternary_minima(lo, hi, less_component, AXIS_SEARCH_STEPS)
 
     def _cusps(self, u: np.ndarray, d1: np.ndarray) -> np.ndarray:
         """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).
@@ -365,14 +378,11 @@ class FeedEnvelope:
         turn = np.flatnonzero((norms > 0.0) & (dots < 0.5 * norms))
         if turn.size == 0:
             return np.empty(0)
-        lo, hi = u[turn].copy(), u[turn + 1].copy()
-        for _ in range(CUSP_SEARCH_STEPS):
-            a, b = lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0
-            speed = np.linalg.norm(self._curve.evaluate(np.concatenate([a, b]), order=1)[1], axis=1)
-            left = speed[: a.size] < speed[a.size :]
-            hi = np.where(left, b, hi)
-            lo = np.where(left, lo, a)
-        mid = 0.5 * (lo + hi)
+
+        def speed(at: np.ndarray) -> np.ndarray:
+            return np.linalg.norm(self._curve.evaluate(at, order=1)[1], axis=1)
+
+        mid = ternary_minima(u[turn], u[turn + 1], speed, CUSP_SEARCH_STEPS)
         reverses = dots[turn] < 0.0
         return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
 
