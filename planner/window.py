@@ -309,8 +309,12 @@ def passes(
         v[k] = min(back[k], max_ramp_speed(v[k - 1], L, A, J))
         fits = L * (1.0 + RAMP_FIT_RTOL)
         if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], A, J) > fits:
-            if braking_distance_mm(v[k - 1], A, J) <= fits:
-                # Stopping fits where slowing to v[k] does not: slow down further instead.
+            # Stopping fits where slowing to v[k] does not: slow down further instead. Within
+            # the points' resolution: a re-plan from a row of a plan's hardest braking took
+            # 1.3e-8 mm more to stop (its start state is sampled), and braking hardest instead
+            # came to the curve's end at 44 mm/s, the lowest feed that ramps there at zero
+            # acceleration.
+            if braking_distance_mm(v[k - 1], A, J) <= fits + MIN_POINT_GAP_MM:
                 v[k] = fitting_lower_speed(v[k - 1], v[k], L, A, J)
             else:
                 # Only a start state faster than the constraints allow gets here: brake hardest.

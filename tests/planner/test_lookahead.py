@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 import tracemalloc
+from dataclasses import replace
 from pathlib import Path as FilePath
 
 import numpy as np
@@ -154,6 +155,57 @@ def test_a_braking_to_rest_that_ends_on_a_period_boundary_within_round_off():
     block = plan_setpoints(Path(line, LIMITS, T), LIMITS, T, start=start, braking_end_mm_s=0.0)
     assert block.last and tuple(block.position_mm[-1]) == (100.0, 0.0)
     assert (block.feed_mm_s >= 0.0).all()
+
+
+def test_replans_from_every_row_of_the_hardest_braking_to_the_end_stop_there():
+    # This rational cubic's plan ends braking as hard as the limits allow. A re-plan from one
+    # of those rows (its state sampled) took 1.3e-8 mm more to stop than the curve had left,
+    # and ran into the end at 44 mm/s: 9.4 A on the setpoints.
+    curve = NurbsCurve.from_arrays(
+        3,
+        [[0.0, 2.0], [0.0, -14.0], [21.0, 0.0], [-3.0, -4.0]],
+        [0, 0, 0, 0, 1, 1, 1, 1],
+        weights=[2.0, 1.0, 3.0, 3.0],
+    )
+    limits = replace(LIMITS, chord_error_mm=1e-4)
+    path = Path(curve, limits, T)
+    first = plan_setpoints(path, limits, T)
+    for k in range(len(first) - 60, len(first) - 1):
+        end = braking_end_from_rows(first.feed_mm_s[k:], first.accel_mm_s2[k:], T)
+        for ratio in (1.0, 0.3):
+            second = plan_setpoints(
+                path,
+                limits.with_feed_override(ratio),
+                T,
+                start=first.state(k),
+                braking_end_mm_s=end.feed_mm_s,
+            )
+            fig = sc.measure(curve, *joined(first, k, second), T)
+            assert fig.max_accel_mm_s2 <= 1000.0 * 1.02, (k, ratio)
+            assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05, (k, ratio)
+            assert fig.end_error_mm <= 1e-6
+
+
+def test_a_start_too_fast_for_the_points_before_a_fold_still_stops_at_the_fold():
+    # A cubic folding back on itself 3e-9 mm to the side: a stop at 8.59 mm. Re-planned at
+    # 150 % from this state (a row of its plan), the one braking segment that replaced the
+    # points the start was too fast for took the fold's rest away with them, and the motion
+    # passed the fold at 44 mm/s: 10.8 A and 270 J on the setpoints.
+    side_mm = 10**-8.5
+    curve = NurbsCurve.from_arrays(
+        3,
+        [[0, 0], [10, 0], [10, side_mm], [0, 2 * side_mm]],
+        [0] * 4 + [1] * 4,
+        weights=[1, 3, 1, 1],
+    )
+    start = MotionState(s_mm=3.0970001406380256, v_mm_s=67.6377188750378, a_mm_s2=325.84034)
+    block = plan_setpoints(Path(curve, LIMITS, T), LIMITS.with_feed_override(1.5), T, start=start)
+    fold = int(np.argmin(np.abs(block.s_mm - 8.589958217817745)))
+    assert block.feed_mm_s[fold] == 0.0
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.max_chord_error_mm <= LIMITS.chord_error_mm
 
 
 def test_hold_stops_on_the_path_within_the_braking_distance(curve, path):
