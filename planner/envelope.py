@@ -58,6 +58,12 @@ MIN_FEED_MM_S = 1e-6
 CORNER_COS_TOL = 1e-12
 #: Ternary-search steps locating a cusp inside a span.
 CUSP_SEARCH_STEPS = 60
+#: |C'| where a tangent reverses, relative to the largest |C'| on the chunk's grid, below which
+#: the reversal is a cusp (a stop); the search ends about 1e-11 from a true cusp.
+CUSP_SPEED_RTOL = 1e-6
+#: A near-cusp is a tip, not a stop, where its feed limit is above this many singular floors
+#: (planner.feed.singular_floor_feed).
+TIP_FLOOR_RATIO = 4.0
 #: Rounds and points per round of the search of a curvature maximum between its grid
 #: neighbours (each round shrinks the bracket to 2 / (points + 1) of it).
 PEAK_SEARCH_STEPS, PEAK_SEARCH_POINTS = 6, 9
@@ -267,7 +273,8 @@ class FeedEnvelope:
             kappa[knot_rows[corner]] = np.inf
         samples = (u, v, kappa)
         extras = []
-        peaks = self._curvature_maxima(u, kappa, hidden)
+        cusps, tips = self._reversals(u, d1)
+        peaks = np.concatenate([self._curvature_maxima(u, kappa, hidden), tips])
         if peaks.size:
             # The tip and two neighbours a tenth of the grid interval away, so that the linear
             # interpolation of the limit rises from the tip as the curvature falls.
@@ -278,7 +285,6 @@ class FeedEnvelope:
         aligned = self._axis_alignments(u, d1)
         if aligned.size:
             extras.append(self._sampled(aligned))
-        cusps = self._cusps(u, d1)
         if cusps.size:
             # A cusp is a stop, with C' = 0 (located to round-off, where |C'| has its kink).
             stops = (cusps, np.zeros((cusps.size, 2)), np.full(cusps.size, np.inf))
@@ -365,26 +371,35 @@ class FeedEnvelope:
 
         return ternary_minima(lo, hi, less_component, AXIS_SEARCH_STEPS)
 
-    def _cusps(self, u: np.ndarray, d1: np.ndarray) -> np.ndarray:
-        """Parameters inside a span where C'(u) = 0 and the tangent reverses (a cusp).
+    def _reversals(self, u: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Parameters inside a span where the tangent reverses: (cusps, tips).
 
         Found where consecutive samples' tangents (``d1``, C' at u) turn by more than 60
-        degrees, by ternary search of the smallest |C'| between them. A near-cusp found so is
-        a stop too: telling it apart by |C'| at the search's minimum (against round-off) let
-        reversals through on some rational curves, passed at speed (4.7 A, 117 J).
+        degrees, by ternary search of the smallest |C'| between them. A cusp (C' = 0) is a stop.
+        A near-cusp is a tip the plan passes at the feed its radius allows (at the bench's
+        limits about 2.5 mm/s for a 0.02 mm radius, where a stop cost some 30 ms), when that is
+        clear: |C'| there above round-off (``CUSP_SPEED_RTOL``, against the chunk's largest
+        |C'|: in a span of zero length the ends' |C'| is round-off too), and its feed limit
+        above ``TIP_FLOOR_RATIO`` times the singular floor. A reversal of a rational curve
+        nearly on a line has a radius of 1e-11 mm, far too narrow for the curvature maxima's
+        search: taken for a tip, it was passed at speed (4.7 A, 117 J).
         """
         dots = np.sum(d1[:-1] * d1[1:], axis=1)
         norms = np.linalg.norm(d1[:-1], axis=1) * np.linalg.norm(d1[1:], axis=1)
-        turn = np.flatnonzero((norms > 0.0) & (dots < 0.5 * norms))
+        turn = np.flatnonzero((norms > 0.0) & (dots < 0.5 * norms) & (dots < 0.0))
         if turn.size == 0:
-            return np.empty(0)
+            return np.empty(0), np.empty(0)
 
         def speed(at: np.ndarray) -> np.ndarray:
             return np.linalg.norm(self._curve.evaluate(at, order=1)[1], axis=1)
 
         mid = ternary_minima(u[turn], u[turn + 1], speed, CUSP_SEARCH_STEPS)
-        reverses = dots[turn] < 0.0
-        return mid[reverses & (mid > u[turn]) & (mid < u[turn + 1])]
+        mid = mid[(mid > u[turn]) & (mid < u[turn + 1])]
+        scale = np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
+        _, v, _, _ = self._limit(mid)
+        floor = singular_floor_feed(self._planning_limits, self._T)
+        tip = (speed(mid) > CUSP_SPEED_RTOL * scale) & (_lower_part(v) > TIP_FLOOR_RATIO * floor)
+        return mid[~tip], mid[tip]
 
     def _tight_midpoints(
         self, u: np.ndarray, v: np.ndarray

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import itertools
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import setpoint_checks as sc
@@ -239,6 +242,22 @@ FOUND_CASES = {
 @pytest.mark.parametrize("name", FOUND_CASES)
 def test_curves_found_by_longer_runs_keep_every_limit(name):
     assert_every_limit_holds(*FOUND_CASES[name])
+
+
+def test_a_reversal_of_a_rational_curve_nearly_on_a_line_is_a_rest():
+    # Up the y axis and back, then into z: the reversal lies 8e-8 mm off the line, a tip of
+    # 1e-11 mm radius, far too narrow for the search of curvature maxima. Taken for a
+    # near-cusp, it was passed at speed on re-plans: 4.7 A and 2.4 delta.
+    curve = NurbsCurve.from_arrays(
+        3,
+        np.array([[0, 0, 0], [0, 0, 0], [0, 6, 0], [0, 0, 0], [0, 0, 1], [0, 0, 0]]),
+        np.array([0, 0, 0, 0, 0.1442694, 0.16846702, 1, 1, 1, 1]),
+        np.array([1, 2.6875, 1, 2.25, 0.5, 1]),
+    )
+    limits = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-4)
+    per_axis = replace(limits, axis_vmax_mm_s=(10.0,) * 3, axis_amax_mm_s2=(200.0,) * 3)
+    for where, plan_limits in itertools.product((0.0, 0.03125), (limits, per_axis)):
+        assert_a_replan_keeps_every_limit(curve, plan_limits, where, braking=False, ratio=0.3)
 
 
 def test_a_tangent_turning_through_an_axis_between_grid_samples_keeps_that_axis_feed():
