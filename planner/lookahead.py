@@ -56,6 +56,8 @@ from planner.window import (
     sensitive_points,
 )
 
+#: A start decelerating by less than this is not braking (round-off at the end of a braking).
+BRAKING_TOLERANCE_MM_S2 = 1e-6
 #: Window length in braking distances from vmax, and the lower bound of the window, mm.
 WINDOW_BRAKING_DISTANCES, MIN_WINDOW_MM = 16.0, 1.0
 #: The first window covers this many periods at vmax (at the start feed, when above it) plus
@@ -145,7 +147,10 @@ def plan_segments(
     A, J = lim.A, lim.J
     s, v = s_start, v_start
     first, v_first = settle_phases(a_start, J), settled_speed(v, a_start, J)
-    if a_start < 0.0 and braking_end_mm_s is not None:
+    # Not below -BRAKING_TOLERANCE_MM_S2: a re-plan at 30 % from a row at the zero
+    # acceleration of a pin (-2.8e-14 mm/s²) first braked to the new vmax at zero
+    # acceleration, and could no longer stop at the curve's end 6 mm on (5 A on the setpoints).
+    if a_start < -BRAKING_TOLERANCE_MM_S2 and braking_end_mm_s is not None:
         # Easing off at once ends the braking at the highest feed any plan from this state can
         # come to zero acceleration at: the braking end is never above it.
         v_first = min(max(braking_end_mm_s, 0.0), lim.vmax_mm_s, v_first)

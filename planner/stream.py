@@ -39,7 +39,7 @@ from planner.arclength import ArcLengthTable
 from planner.envelope import MAX_OVERRIDE_RATIO, FeedEnvelope
 from planner.feed import adaptive_feed, tangential_accel_limit
 from planner.interpolator import Interpolator
-from planner.lookahead import PlanLimits, plan_segments
+from planner.lookahead import BRAKING_TOLERANCE_MM_S2, PlanLimits, plan_segments
 from planner.nurbs import NurbsCurve
 from planner.profiles import Phase, PhaseTrain
 from planner.types import Limits, MotionState, SetpointBlock
@@ -48,8 +48,6 @@ from planner.window import SegmentPlans
 
 #: Relative tolerance when deciding that a time falls on a period boundary.
 _TIME_EPS = 1e-9
-#: A start decelerating by less than this is not braking (round-off at the end of a braking).
-BRAKING_TOLERANCE_MM_S2 = 1e-6
 #: Largest batch of rows whose parameters and positions are computed together.
 BATCH_ROWS = 1024
 

@@ -7,6 +7,7 @@ import tracemalloc
 from dataclasses import replace
 from pathlib import Path as FilePath
 
+import curve_families as cf
 import numpy as np
 import pytest
 import setpoint_checks as sc
@@ -206,6 +207,25 @@ def test_a_start_too_fast_for_the_points_before_a_fold_still_stops_at_the_fold()
     assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
     assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
     assert fig.max_chord_error_mm <= LIMITS.chord_error_mm
+
+
+def test_a_start_at_a_round_off_deceleration_is_not_braking():
+    # A row at a pin's zero acceleration, 6.2 mm before the curve's end, read back as
+    # -2.8e-14 mm/s². Taken for a braking start, the re-plan at 30 % braked to its vmax at zero
+    # acceleration first, and ran into the end at 24 mm/s: 5 A on the setpoints.
+    curve = cf.free_curve(0)
+    limits = replace(LIMITS, chord_error_mm=1e-4)
+    start = MotionState(168.27088390245154, 77.22949951166048, -2.842170943040401e-14)
+    block = plan_setpoints(
+        Path(curve, limits, T),
+        limits.with_feed_override(0.3),
+        T,
+        start=start,
+        braking_end_mm_s=start.v_mm_s,
+    )
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
 
 
 def test_hold_stops_on_the_path_within_the_braking_distance(curve, path):
