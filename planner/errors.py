@@ -3,7 +3,8 @@
 Hierarchy::
 
     PlannerError                 base of every planner error
-     └── CurveError (ValueError) a NURBS curve, its document, or a parameter on it is invalid
+     ├── CurveError (ValueError) a NURBS curve, its document, or a parameter on it is invalid
+     └── StartTooFast (ValueError) a start state that cannot stop before the curve's end
 
 Messages name the field, the offending value and the rule it breaks, for example
 ``curve: weights[3]: got -0.2, must be finite and > 0``.
@@ -65,3 +66,21 @@ class CurveError(PlannerError, ValueError):
         self.field = field
         self.message = message
         self.rule = rule
+
+
+class StartTooFast(PlannerError, ValueError):
+    """A start state from which no motion within the limits stops before the curve's end.
+
+    Raised when the plan gets there instead of releasing a motion that would arrive at speed
+    (a jump to rest on the last setpoint). A state taken from a plan of the same path never
+    raises it, whatever the feed override.
+    """
+
+    def __init__(
+        self, s_mm: float, v_mm_s: float, a_mm_s2: float, end_mm: float, end_feed_mm_s: float
+    ) -> None:
+        super().__init__(
+            f"start: s {s_mm:.6f} mm, feed {v_mm_s:.6g} mm/s, acceleration {a_mm_s2:.6g} mm/s²: "
+            f"cannot stop before the curve's end at {end_mm:.6f} mm within the limits "
+            f"(it would get there at {end_feed_mm_s:.6g} mm/s)"
+        )

@@ -34,6 +34,7 @@ from collections.abc import Callable, Iterator
 from planner.arclength import ArcLengthTable
 from planner.checker import Checker
 from planner.envelope import FeedEnvelope
+from planner.errors import StartTooFast
 from planner.profiles import Phase, PhaseTrain
 from planner.profiles.scurve import (
     braking_distance_mm,
@@ -206,10 +207,11 @@ def plan_segments(
         if final:
             if v_plan[-1] > 1e-9:
                 # Too fast to stop where planned (start beyond the constraints): stop later.
+                if s_end >= curve_end:
+                    raise StartTooFast(s_start, v_start, a_start, curve_end, v_plan[-1])
                 stop_at = stop_at + braking_distance_mm(v_plan[-1], A, J)
                 extra = 0.0
-                if s_end < curve_end:
-                    continue
+                continue
             segments, k = _released(w, v_plan, v_plan, lim, final=True)
             yield segments
             return

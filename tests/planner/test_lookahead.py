@@ -16,6 +16,7 @@ import yaml
 from planner import lookahead
 from planner.checker import Checker
 from planner.envelope import CHORD_MARGIN, FeedEnvelope
+from planner.errors import StartTooFast
 from planner.interpolator import Interpolator
 from planner.nurbs import NurbsCurve
 from planner.profiles.scurve import braking_distance_mm
@@ -228,6 +229,14 @@ def test_a_start_at_a_round_off_deceleration_is_not_braking():
     assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
 
 
+def test_a_start_that_cannot_stop_before_the_curve_end_is_refused_by_name():
+    # Not a motion that arrives at speed and jumps to rest on the last setpoint.
+    line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [10.0, 0.0]], [0, 0, 1, 1])
+    start = MotionState(9.0, 100.0, 0.0)
+    with pytest.raises(StartTooFast, match=r"start: s 9\.000000 mm, feed 100 mm/s.*end at 10\."):
+        plan_setpoints(Path(line, LIMITS, T), LIMITS, T, start=start)
+
+
 def test_hold_stops_on_the_path_within_the_braking_distance(curve, path):
     first = plan_setpoints(path, LIMITS, T)
     k = int(np.argmax(first.feed_mm_s >= 100.0 - 1e-9)) + 5
@@ -255,12 +264,14 @@ def test_hold_while_accelerating_and_resume(curve, path):
     assert fig.end_error_mm <= 1e-6
 
 
-def test_stop_at_rest_and_at_the_end():
+def test_stop_at_rest_and_before_the_end():
     curve = NurbsCurve.from_arrays(1, [[0, 0], [3, 0]], [0, 0, 1, 1])
     p = Path(curve, LIMITS, T)
     assert len(plan_setpoints(p, LIMITS, T, stop=True)) == 1
-    block = plan_setpoints(p, LIMITS, T, start=MotionState(1.0, 60.0, 0.0), stop=True)
-    assert np.array_equal(block.position_mm[-1], curve.end_point)
+    block = plan_setpoints(p, LIMITS, T, start=MotionState(1.2, 40.0, 0.0), stop=True)
+    assert 2.9 < block.s_mm[-1] < 3.0  # 1.8 mm to stop from 40 mm/s
+    with pytest.raises(StartTooFast):  # 3.3 mm to stop from 60 mm/s: at speed at the end
+        plan_setpoints(p, LIMITS, T, start=MotionState(1.0, 60.0, 0.0), stop=True)
 
 
 def test_path_rejects_other_geometry_limits(path):
