@@ -148,13 +148,15 @@ def plan_segments(
     A, J = lim.A, lim.J
     s, v = s_start, v_start
     first, v_first = settle_phases(a_start, J), settled_speed(v, a_start, J)
-    # Not below -BRAKING_TOLERANCE_MM_S2: a re-plan at 30 % from a row at the zero
-    # acceleration of a pin (-2.8e-14 mm/s²) first braked to the new vmax at zero
-    # acceleration, and could no longer stop at the curve's end 6 mm on (5 A on the setpoints).
+    # Not below -BRAKING_TOLERANCE_MM_S2: a row at the zero acceleration of a pin read back as
+    # -2.8e-14 mm/s².
     if a_start < -BRAKING_TOLERANCE_MM_S2 and braking_end_mm_s is not None:
         # Easing off at once ends the braking at the highest feed any plan from this state can
-        # come to zero acceleration at: the braking end is never above it.
-        v_first = min(max(braking_end_mm_s, 0.0), lim.vmax_mm_s, v_first)
+        # come to zero acceleration at: the braking end is never above it. Not at a lower vmax
+        # (a lowered override): the windows brake down to it with the path ahead in view. Brought
+        # to zero acceleration at the new vmax first, re-plans at 30 % could no longer stop at a
+        # rest or the curve's end a few millimetres on: 22 delta, 1.4 A; 5 A.
+        v_first = min(max(braking_end_mm_s, 0.0), v_first)
         first = transition_phases(v, a_start, v_first, 0.0, A, J)
     if first:
         train = PhaseTrain(0.0, s, v, a_start)

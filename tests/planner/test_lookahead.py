@@ -237,6 +237,25 @@ def test_a_start_that_cannot_stop_before_the_curve_end_is_refused_by_name():
         plan_setpoints(Path(line, LIMITS, T), LIMITS, T, start=start)
 
 
+def test_a_braking_start_under_a_lowered_override_still_stops_at_the_rest_ahead():
+    # A row braking gently (-46 mm/s²) to 81.5 mm/s, 5.4 mm before a fold of the cusp curve 2.
+    # Re-planned at 30 %, it was first brought to zero acceleration at the new vmax: that took
+    # 5.7 mm, and the fold came at 30 mm/s (22 delta, 1.4 A).
+    curve = cf.cusp_curve(2)
+    start = MotionState(124.27930161337657, 81.5130375781342, -45.77472430585594)
+    block = plan_setpoints(
+        Path(curve, LIMITS, T),
+        LIMITS.with_feed_override(0.3),
+        T,
+        start=start,
+        braking_end_mm_s=81.45518284823386,
+    )
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.max_chord_error_mm <= LIMITS.chord_error_mm * 1.01
+
+
 def test_hold_stops_on_the_path_within_the_braking_distance(curve, path):
     first = plan_setpoints(path, LIMITS, T)
     k = int(np.argmax(first.feed_mm_s >= 100.0 - 1e-9)) + 5
