@@ -374,8 +374,9 @@ class FeedEnvelope:
     def _reversals(self, u: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Parameters inside a span where the tangent reverses: (cusps, tips).
 
-        Found where consecutive samples' tangents (``d1``, C' at u) turn by more than 60
-        degrees, by ternary search of the smallest |C'| between them. A cusp (C' = 0) is a stop.
+        Found where consecutive samples' tangents (``d1``, C' at u) point apart (turn by more
+        than 90 degrees), by ternary search of the smallest |C'| between them. A cusp (C' = 0)
+        is a stop.
         A near-cusp is a tip the plan passes at the feed its radius allows (at the bench's
         limits about 2.5 mm/s for a 0.02 mm radius, where a stop cost some 30 ms), when that is
         clear: |C'| there above round-off (``CUSP_SPEED_RTOL``, against the chunk's largest
@@ -386,7 +387,7 @@ class FeedEnvelope:
         """
         dots = np.sum(d1[:-1] * d1[1:], axis=1)
         norms = np.linalg.norm(d1[:-1], axis=1) * np.linalg.norm(d1[1:], axis=1)
-        turn = np.flatnonzero((norms > 0.0) & (dots < 0.5 * norms) & (dots < 0.0))
+        turn = np.flatnonzero((norms > 0.0) & (dots < 0.0))
         if turn.size == 0:
             return np.empty(0), np.empty(0)
 
@@ -396,9 +397,11 @@ class FeedEnvelope:
         mid = ternary_minima(u[turn], u[turn + 1], speed, CUSP_SEARCH_STEPS)
         mid = mid[(mid > u[turn]) & (mid < u[turn + 1])]
         scale = np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
-        _, v, _, _ = self._limit(mid)
+        _, v, d1_mid, _ = self._limit(mid)
         floor = singular_floor_feed(self._planning_limits, self._T)
-        tip = (speed(mid) > CUSP_SPEED_RTOL * scale) & (_lower_part(v) > TIP_FLOOR_RATIO * floor)
+        tip = (np.linalg.norm(d1_mid, axis=1) > CUSP_SPEED_RTOL * scale) & (
+            _lower_part(v) > TIP_FLOOR_RATIO * floor
+        )
         return mid[~tip], mid[tip]
 
     def _tight_midpoints(
