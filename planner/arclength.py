@@ -56,6 +56,8 @@ _MAX_LEVELS = 60
 CHUNK_SPANS = 256
 #: Curve evaluations per call while the table is built (bounds its memory on long curves).
 _EVALUATION_CHUNK = 1 << 16
+#: Share of an interval's accepted error that the terms dropped from its evaluation may add.
+_TRIM_SHARE = 0.1
 #: Target |s(u) - s| of u_of_s, mm.
 _S_TOL_MM = 1e-10
 #: Largest |s(u) - s| at which a Newton step may be accepted without checking it, mm.
@@ -252,10 +254,13 @@ class _Chunk:
         lo, hi, speed = table if table is not None else _build_table(curve, breaks, split, floor_mm)
         half = 0.5 * (hi - lo)
         # |C'| = sum a_k T_k(x) with u = lo + (x + 1) half; its antiderivative from x = -1,
-        # times half, is the arc length from the interval's start in mm.
+        # times half, is the arc length from the interval's start in mm. Queries evaluate only
+        # the terms that matter anywhere on the chunk (a smooth curve's last few are far below
+        # the tolerance; evaluating the series is most of u(s) and s(u)).
         self._speed = speed
-        self._ds_dx = speed * half[:, None]
-        self._length = _antiderivative(speed) * half[:, None]
+        self._terms = _terms_needed(speed, half, floor_mm)
+        self._ds_dx = speed[:, : self._terms] * half[:, None]
+        self._length = _antiderivative(speed[:, : self._terms]) * half[:, None]
         self._lo, self._hi, self._half = lo, hi, half
         self.u_grid = np.append(lo, hi[-1])
         self.s_grid = s_start + np.concatenate([[0.0], np.cumsum(self._length.sum(axis=1))])
@@ -293,7 +298,7 @@ class _Chunk:
     def s_of_u(self, params: np.ndarray) -> np.ndarray:
         i = np.minimum(np.searchsorted(self.u_grid, params, side="right") - 1, self._last)
         x = self._local(i, params)
-        s = self.s_grid[i] + _series(_chebyshev_t(x, CHEBYSHEV_NODES + 1), self._length[i].T)
+        s = self.s_grid[i] + _series(_chebyshev_t(x, self._terms + 1), self._length[i].T)
         at_start = params == self._lo[i]
         s[at_start] = self.s_grid[i][at_start]
         s[params == self.u_grid[-1]] = self.s_end
@@ -358,7 +363,7 @@ class _Chunk:
                 break
             xa = x[active]
             whole = active.size == x.size
-            t = _chebyshev_t(xa, CHEBYSHEV_NODES + 1)
+            t = _chebyshev_t(xa, self._terms + 1)
             residual = _series(t, length if whole else length[:, active]) - offset[active]
             ds_dx = _series(t, slope if whole else slope[:, active])
             below = residual < 0.0
@@ -381,6 +386,19 @@ class _Chunk:
             x[active[moving]] = step[moving]
             active = active[moving & ~settled]
         return x
+
+
+def _terms_needed(speed: np.ndarray, half: np.ndarray, floor_mm: float) -> int:
+    """The fewest leading terms of the speed series (one per row) whose dropped tail changes
+    no interval's length by more than ``_TRIM_SHARE`` of its accepted error (a term's
+    antiderivative stays within 2 half over the interval)."""
+    length = 2.0 * half * speed[:, 0]
+    allowed = _TRIM_SHARE * (_RTOL * np.abs(length) + floor_mm)
+    tails = 2.0 * half[:, None] * np.cumsum(np.abs(speed[:, ::-1]), axis=1)[:, ::-1]
+    fits = np.all(tails <= allowed[:, None], axis=0)
+    # fits[k]: dropping terms k onwards is harmless; keep at least two terms.
+    harmless = np.flatnonzero(fits[2:])
+    return 2 + int(harmless[0]) if harmless.size else speed.shape[1]
 
 
 def _chebyshev_t(x: np.ndarray, terms: int) -> np.ndarray:

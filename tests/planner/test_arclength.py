@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from test_nurbs import load_paper_curve, random_curve
 
+from planner import arclength
 from planner.arclength import ArcLengthTable
 from planner.errors import CurveError
 from planner.nurbs import NurbsCurve
@@ -78,6 +79,23 @@ def test_ends_map_exactly() -> None:
     assert table.u_grid[-1] == high
     assert table.s_grid[0] == 0.0
     assert table.s_grid[-1] == table.length_mm
+
+
+def test_series_terms_left_out_change_no_length_beyond_the_tolerance(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    curve = load_paper_curve()
+    trimmed = ArcLengthTable(curve)
+    u = np.linspace(*curve.domain, 2001)
+    s = trimmed.s_of_u(u)
+    u_back = trimmed.u_of_s(s)
+    # Leaving out nothing: every term of every interval's series.
+    monkeypatch.setattr(arclength, "_TRIM_SHARE", 0.0)
+    full = ArcLengthTable(curve)
+    np.testing.assert_allclose(s, full.s_of_u(u), rtol=0, atol=1e-12 * full.length_mm)
+    # The paper's curve is smooth: its last few terms are below the tolerance and left out.
+    assert full._chunks[0]._terms > trimmed._chunks[0]._terms
+    np.testing.assert_allclose(full.s_of_u(u_back), s, rtol=0, atol=2e-10)
 
 
 def test_grid_is_read_only_ascending_holds_every_breakpoint_and_matches_s_of_u() -> None:
