@@ -70,14 +70,15 @@ class Checker:
         )
         return float(min(v_limit, np.min(self.v_env[lo:hi] - accel * tau + drop)))
 
-    def worst_of(self, segments: list[tuple]) -> list[tuple[float, float] | None]:
-        """For each segment (s0, v0, phases, v_top, s1[, a0]): (s, v_limit) of its worst excess
-        of the feed limit, or None if it holds (a0, the start acceleration, defaults to 0).
+    def worst_of(self, segments: list[tuple]) -> list[tuple[float, float, float] | None]:
+        """For each segment (s0, v0, phases, v_top, s1[, a0]): (s, v_limit, v_planned) of its
+        worst excess of the feed limit, or None if it holds (a0, the start acceleration,
+        defaults to 0).
 
         Segments whose highest feed is below the lowest limit they span hold at once; the others
         are laid on one time line (a second apart) and sampled together every half period.
         """
-        out: list[tuple[float, float] | None] = [None] * len(segments)
+        out: list[tuple[float, float, float] | None] = [None] * len(segments)
         s0, v_top, s1 = (np.array([seg[i] for seg in segments]) for i in (0, 3, 4))
         pending = np.flatnonzero(self._interior_mins(s0, s1) < v_top * (1.0 + CHECK_SLACK))
         train = PhaseTrain(0.0, 0.0, 0.0, 0.0)
@@ -109,7 +110,7 @@ class Checker:
         )
         for i, j in zip(sampled, worst.tolist(), strict=True):
             if excess[j] > 0.0:
-                out[i] = (float(s[j]), float(limit[j]))
+                out[i] = (float(s[j]), float(limit[j]), float(v[j]))
         return out
 
     def _interior_mins(self, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:

@@ -5,14 +5,16 @@ Engineering 23(3), 2012, 299-304: the feed limit of eq. (4) (and the optional li
 :mod:`planner.feed`) is sampled on a grid of every knot span, the curvature maxima refined, in
 place of the paper's step-by-step pre-interpolation at vmax.
 
-Beyond the paper: each sample is lowered to the limits a step from it can reach (the dilation,
-exact for the piecewise-linear limit between samples, and never across a stop): the chord-error
-feed to those within half a period's step, since a chord's deviation from the curve is set by
-the curvature around its middle (to first order, L^2 kappa / 8 with kappa at the middle), and
-the other limits (the chord-deficit jerk, with its jumps at knots, and the accelerations) to
-those within a whole step, so a step never sees a larger curvature than planned; then the
-chord deficit's change from step to step is checked at each sample
-(:func:`planner.feed.chord_deficit_change_feed`). Sharp corners and
+Beyond the paper: the limits other than the chord error (the chord-deficit jerk, with its jumps
+at knots, and the accelerations) depend on the steps either side of a setpoint, so each sample
+is lowered to those a whole period's step from it can reach (the dilation, exact for the
+piecewise-linear limit between samples, and never across a stop); then the chord deficit's
+change from step to step is checked at each sample
+(:func:`planner.feed.chord_deficit_change_feed`). The chord-error feed is not dilated: a
+chord's deviation from the curve is set by the curvature around its middle (to first order,
+L^2 kappa / 8 with kappa at the middle), where the look-ahead keeps the plan's feed under the
+limit, and that feed is at least the step's mean feed L / T less J T^2 / 24 (0.013 mm/s with
+the bench's limits: within ``CHORD_MARGIN`` of delta above about 1 mm/s). Sharp corners and
 cusps (C'(u) = 0 with a turning tangent) are stops (limit 0) with a grid refined towards them;
 the curvature maxima are located by a shrinking grid search of the curvature itself, so that a
 tip far narrower than the grid is planned at its own radius.
@@ -165,11 +167,11 @@ class FeedEnvelope:
     """Geometric feed limit v_limit(s) of a curve (no vmax), computed lazily per chunk of spans.
 
     Each grid sample carries the feed limit of :func:`planner.feed.geometric_feed_limits`: its
-    chord-error part lowered to the smallest, interpolated linearly between samples, within
-    half a period's step (T / 2 times its own lowered limit, capped at ``MAX_OVERRIDE_RATIO`` x
-    vmax) on either side, its other part within a whole step, and both at its grid neighbours,
-    so that a step and the linear interpolation between samples never see a larger curvature
-    than planned. Sharp corners (feed limit 0) keep their single zero sample and a grid refined
+    chord-error part as it is there (a step is held to it where its middle is), its other part
+    lowered to the smallest, interpolated linearly between samples, within a period's step (T
+    times its own limit, capped at ``MAX_OVERRIDE_RATIO`` x vmax) on either side and at its
+    grid neighbours, so that the steps around a setpoint never see a larger curvature than
+    planned. Sharp corners (feed limit 0) keep their single zero sample and a grid refined
     towards them.
     """
 
@@ -319,7 +321,7 @@ class FeedEnvelope:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """kappa, v_limit, C' and C'' at u; with ``slopes``, whether the curvature rises there
         (dkappa/du > 0) in place of C''. v_limit has two columns: the chord-error feed and every
-        other limit (:func:`planner.feed.geometric_feed_limits`), dilated apart."""
+        other limit (:func:`planner.feed.geometric_feed_limits`), the latter dilated alone."""
         if u.size == 0:
             d = np.empty((0, self._curve.dimension))
             return np.empty(0), np.empty((0, 2)), d, d
@@ -494,32 +496,29 @@ class FeedEnvelope:
         )
 
     def _dilated(self, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """The feed limit at each sample: its two parts (``v``'s columns) lowered to the limits
-        a step from it can reach, then the lower of them; 0 at a stop.
+        """The feed limit at each sample: the lower of its chord-error feed (``v``'s column 0)
+        and its other limits (column 1) lowered to those a step from it can reach; 0 at a stop.
 
-        A step from s_i at feed w is w T long. Its chord error is set by the curvature around
-        its middle, w T / 2 away: the chord-error feed (column 0) is lowered to the limits
-        within half a step. The chord-deficit jerk and the accelerations on the setpoints
-        (column 1) depend on the steps either side as well: those within a whole step.
-
-        Against the whole step for both, the bench's curves with loops went from 1.06-1.09 of
-        its jerk-limited reference to 1.05-1.06, and the largest chord error on their setpoints
-        stayed at 0.97 delta. Half a step for the chord deficit too measured 1.055 J on a tip
-        whose limit falls from 140 to 15 mm/s within two steps.
+        A step from s_i at feed w is w T long. The chord-deficit jerk and the accelerations on
+        the setpoints depend on the steps either side of it: column 1 is lowered to the limits
+        within a whole step (half a step measured 1.055 J on a tip whose limit falls from 140
+        to 15 mm/s within two steps). A step's chord error is set by the curvature around its
+        middle, where the plan's feed is held to column 0 itself: lowering column 0 to the
+        limits within half a step as well held the plan under the limit wherever it changes (the
+        bench's curves with loops took 1.032-1.036 of its jerk-limited reference instead of
+        1.014-1.017), and the largest chord error on their setpoints stayed at 0.97 delta either
+        way.
         """
         limit = _lower_part(v)
         stop = limit <= 0.0
         if len(s) < 2:
             return np.where(stop, 0.0, limit)
-        lowered = [
-            self._lowered(s, np.where(stop, 0.0, v[:, column]), limit, reach_s)
-            for column, reach_s in ((0, 0.5 * self._T), (1, self._T))
-        ]
+        lowered = self._lowered(s, np.where(stop, 0.0, v[:, 1]), limit, self._T)
         # Never below the singular floor (a step that short needs no geometric limit): next to
         # a sample at the floor, that is not a stop, the dilation would otherwise leave a limit
         # vanishing with the distance to it, d / reach, which the motion approaches forever.
         floor = singular_floor_feed(self._planning_limits, self._T)
-        return np.where(stop, 0.0, np.maximum(np.minimum(limit, np.minimum(*lowered)), floor))
+        return np.where(stop, 0.0, np.maximum(np.minimum(limit, lowered), floor))
 
     def _lowered(self, s: np.ndarray, f: np.ndarray, own: np.ndarray, reach_s: float) -> np.ndarray:
         """The largest w <= ``own`` at each sample with w <= f(s_i +- x) for every x up to

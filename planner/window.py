@@ -198,6 +198,12 @@ class Window:
                 return k + 1 if pinned[k + 1] else k
         return None
 
+    @property
+    def rest_inside(self) -> bool:
+        """Whether :attr:`rest_mm` is known and inside the window (a stop the plan may fall
+        back on, :meth:`rest_first`)."""
+        return self.rest_mm is not None and self.s[0] < self.rest_mm < self.s[-1]
+
     def rest_first(self) -> None:
         """Replace the points up to :attr:`rest_mm` with a stop there (see
         :func:`planner.refine.refine`)."""

@@ -349,6 +349,29 @@ def test_a_start_too_fast_for_a_staircase_brakes_in_onesegment_plan():
     assert w.braking and w.peak_cap[0] <= 10.0
 
 
+def test_a_start_braking_in_one_segment_brakes_deeper_where_the_limit_falls_faster():
+    # A re-plan of loops 1 at 150 % from a state accelerating towards a tip of 14.3 mm/s,
+    # brought to zero acceleration at 51 mm/s 2.8 mm before it: braking in one segment down to
+    # the tip's feed ran 3 % over the limit on the tip's flank, and with no rest to stop at, the
+    # window was released so (1.02 delta on the setpoints). Braking deeper keeps under it.
+    curve = cf.family("loops", range(1, 2))[0]
+    path = Path(curve, LIMITS, T)
+    lim = PlanLimits(vmax_mm_s=150.0, A=1000.0, J=20000.0, T=T)
+    s_start, s_end, v_start = 100.8595, 116.8118, 50.9811
+    s_env, v_env = path.envelope.query(s_start, s_end)
+    checker = Checker(s_env, v_env, lim)
+    floor = checker.interior_min(s_start, s_end)
+    w = Window([s_start, s_end], [0.0, 0.0], [False])
+    w.merge_first(1, floor)
+    v = refine(w, checker, v_start, lim)
+    segments = [
+        (w.s[k], v[k], *segment_plan(w, k, v, lim), w.s[k + 1], w.acc[k])
+        for k in range(len(w.s) - 1)
+    ]
+    assert checker.worst_of(segments) == [None] * len(segments)
+    assert w.braking and floor * 0.9 < w.peak_cap[0] < floor
+
+
 def test_a_pin_before_a_point_of_zero_acceleration_settles_below_that_point():
     # A pin braking along the limit, 0.1 mm before the limit's minimum (a point of zero
     # acceleration): turning round to that point's own speed takes about 0.23 mm, settling
@@ -399,21 +422,23 @@ def test_a_pin_the_scan_cannot_honour_at_its_flat_cap_keeps_it_with_less_acceler
 
 
 def test_envelope_dilation_is_exact_between_samples(path):
-    # A limit falling linearly, f(s) = a - b s, on an uneven grid. As the chord-error feed, the
-    # middle of a step of w T from s meets f = w where a - b (s + w T / 2) = w, so
-    # w = f(s) / (1 + b T / 2) at every sample; as any other limit (the chord-deficit jerk, the
-    # accelerations), the step's end does: w = f(s) / (1 + b T). Both monotone envelopes. The
-    # samples alone gave more here, and where a curved limit falls steeply a sawtooth whose
-    # teeth became sensitive points.
+    # A limit falling linearly, f(s) = a - b s, on an uneven grid. As any limit but the chord
+    # error (the chord-deficit jerk, the accelerations), the end of a step of w T from s meets
+    # f = w where a - b (s + w T) = w, so w = f(s) / (1 + b T) at every sample: a monotone
+    # envelope. The samples alone gave more here, and where a curved limit falls steeply a
+    # sawtooth whose teeth became sensitive points. The chord-error feed holds a step where its
+    # middle is, through the plan's own feed there: it stays as it is.
     envelope = FeedEnvelope(path.curve, path.arc, LIMITS, T)
     rng = np.random.default_rng(5)
     s = np.cumsum(rng.uniform(0.01, 0.2, 200))
     a, b = 100.0, 4.0
     falling, unbounded = a - b * s, np.full(s.size, np.inf)
-    for columns, reach_s in (((falling, unbounded), 0.5 * T), ((unbounded, falling), T)):
-        expected = falling / (1.0 + b * reach_s)
+    for columns, expected in (
+        ((falling, unbounded), falling),
+        ((unbounded, falling), falling / (1.0 + b * T)),
+    ):
         dilated = envelope._dilated(s, np.stack(columns, axis=1))
-        inside = s + expected * reach_s <= s[-1]  # the reach ends on the grid
+        inside = s + expected * T <= s[-1]  # the reach ends on the grid
         assert np.allclose(dilated[inside], expected[inside], rtol=1e-12)
         assert np.all(np.diff(dilated) <= 0.0)
 
