@@ -48,8 +48,8 @@ from planner.types import Limits
 #: Target spacing of the envelope grid along the path, mm. Where the limit changes fast the
 #: grid is halved (``TIGHT_CHANGE``) and curvature peaks are searched between samples, so the
 #: base spacing matters only where the limit is smooth. Against 0.4 mm, the bench's 15 family
-#: and paper plans each moved by 4 periods or less (39.172 s -> 39.184 s in all; chord error
-#: still <= 0.97 delta), and the smooth curve's planning CPU time fell by 17 %.
+#: and paper plans each moved by 2 periods or less (38.860 s -> 38.876 s in all; chord error
+#: still <= 0.97 delta), and the smooth curve's planning CPU time fell by about 16 %.
 GRID_SPACING_MM = 1.0
 #: Grid samples per knot span, at least and at most.
 GRID_MIN_PER_SPAN, GRID_MAX_PER_SPAN = 8, 128

@@ -61,8 +61,9 @@ from planner.window import (
 BRAKING_TOLERANCE_MM_S2 = 1e-6
 #: Window length in braking distances from vmax, and the lower bound of the window, mm. A
 #: window costs a fixed share (the envelope query, the checks, the sampling) besides its
-#: points: against 16, 24 took the smooth random curve's planning CPU time down 11 %, with
-#: every bench curve's motion time the same to the period (32: winding +18 periods).
+#: points: against 16, 24 took the smooth random curve's planning CPU time down about 12 %, with
+#: every bench curve's motion time the same to the period. Longer windows also make each
+#: refinement round, between which the planner process answers the cycle, longer.
 WINDOW_BRAKING_DISTANCES, MIN_WINDOW_MM = 24.0, 1.0
 #: The first window covers this many periods at vmax (at the start feed, when above it) plus
 #: this many braking distances from there, when that is shorter than a whole window: a first

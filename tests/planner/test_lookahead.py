@@ -85,17 +85,20 @@ def test_sensitive_point_at_the_curvature_maximum(path):
 
 def test_frequent_speed_change_region_is_flagged(curve):
     limits = Limits(100.0, 1000.0, 20000.0, 1e-4)
-    wave = NurbsCurve.from_arrays(
+    # Most of an ellipse (a convex control polygon: no inflection, where the curvature would
+    # vanish and the limit rise above vmax between the maxima).
+    angle = np.linspace(0.0, 1.75 * np.pi, 8)
+    ellipse = NurbsCurve.from_arrays(
         3,
-        [[0, 0], [5, 3], [10, -3], [15, 3], [20, -3], [25, 3], [30, 0]],
-        [0, 0, 0, 0, 0.25, 0.5, 0.75, 1, 1, 1, 1],
+        np.c_[10.0 * np.cos(angle), 4.0 * np.sin(angle)],
+        [0, 0, 0, 0, 0.2, 0.4, 0.6, 0.8, 1, 1, 1, 1],
     )
-    p = Path(wave, limits, T)
+    p = Path(ellipse, limits, T)
     s_env, v_env = p.envelope.query(0.0, p.length_mm)
     _, _, fv = sensitive_points(s_env, v_env, 0.0, p.length_mm, 100.0)
     assert any(fv[1:])  # F_v_plan = 1 between curvature maxima that never reach vmax
     block = plan_setpoints(p, limits, T)
-    fig = sc.measure(wave, block.u, block.position_mm, T)
+    fig = sc.measure(ellipse, block.u, block.position_mm, T)
     assert fig.max_chord_error_mm <= 1e-4 * 1.01
     assert fig.max_accel_mm_s2 <= 1000.0 * 1.02 and fig.max_jerk_mm_s3 <= 20000.0 * 1.05
 
