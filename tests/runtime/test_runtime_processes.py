@@ -87,10 +87,10 @@ def check_limits(positions: np.ndarray, vmax: float) -> None:
     feed = realised_feed(positions, T)
     accel = differences(feed, T)
     jerk = differences(accel, T)
-    count_mm = 0.001 * np.sqrt(positions.shape[1])
-    assert feed.max() <= vmax * 1.001 + count_mm / T
-    assert np.abs(accel).max() <= AMAX * 1.02 + 2 * count_mm / T**2
-    assert np.abs(jerk).max() <= JMAX * 1.05 + 4 * count_mm / T**3
+    rounding_mm = 0.001 * np.sqrt(positions.shape[1])
+    assert feed.max() <= vmax * 1.001 + rounding_mm / T
+    assert np.abs(accel).max() <= AMAX * 1.02 + 2 * rounding_mm / T**2
+    assert np.abs(jerk).max() <= JMAX * 1.05 + 4 * rounding_mm / T**3
 
 
 def test_paper_curve_reaches_the_drives_exactly(runtime: Runtime) -> None:
