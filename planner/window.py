@@ -212,6 +212,19 @@ class Window:
         self.insert(0, self.rest_mm, 0.0)
         self.braking = False
 
+    def copy(self) -> Window:
+        """A copy whose points and segments may be edited apart from this window's (the table
+        of plans is shared)."""
+        twin = Window(list(self.s), list(self.cap), list(self.fv_plan), self.plans, self.rest_mm)
+        twin.acc, twin.pinned, twin.flat_cap = (
+            list(self.acc),
+            list(self.pinned),
+            list(self.flat_cap),
+        )
+        twin.peak_cap, twin.cosine = list(self.peak_cap), list(self.cosine)
+        twin.braking = self.braking
+        return twin
+
     def merge_first(self, m: int, peak_cap: float) -> None:
         """Remove the points between the start and point m: one segment, held under peak_cap."""
         for column in (self.s, self.cap, self.acc, self.pinned, self.flat_cap, self.fv_plan):

@@ -346,10 +346,34 @@ def test_a_start_too_fast_for_a_staircase_brakes_in_onesegment_plan():
     w = Window(points, caps, [False] * (len(points) - 1))
     v = passes(w.s, w.cap, 40.0, lim)
     assert any(v[k] > w.cap[k] for k in range(1, len(w.s)))
-    assert brake_first(w, v, Checker(s_env, v_env, lim))
+    assert brake_first(w, v, Checker(s_env, v_env, lim), lim)
     v = passes(w.s, w.cap, 40.0, lim)
     assert all(v[k] <= w.cap[k] * (1.0 + 1e-9) for k in range(1, len(w.s)))
     assert w.braking and w.peak_cap[0] <= 10.0
+
+
+def test_a_start_too_fast_for_a_staircase_merges_only_up_to_the_first_point_it_meets():
+    # A staircase of points down a feed limit to a tip of 1 mm/s at 7 mm and up again, as an
+    # earlier plan's refinement leaves it: from 60 mm/s the staircase cannot brake in time, and
+    # the scan finds points too fast up to past the tip. One segment braking as late as it may
+    # meets the staircase on the flank: merged past the tip and braking at once to its feed,
+    # the plan crept at 1 mm/s over the 4 mm from the flank to the last of those points.
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    s_env = np.array([0.0, 2.0, 6.0, 7.0, 11.0, 20.0])
+    v_env = np.array([60.0, 60.0, 20.0, 1.0, 60.0, 60.0])
+    points = [0.0, *np.round(np.arange(0.5, 10.6, 0.25), 6).tolist(), 20.0]
+    caps = [0.0, *np.interp(points[1:-1], s_env, v_env).tolist(), 0.0]
+    w = Window(points, caps, [False] * (len(points) - 1))
+    checker = Checker(s_env, v_env, lim)
+    v = passes(w.s, w.cap, 60.0, lim)
+    too_fast = [k for k in range(1, len(w.s)) if v[k] > w.cap[k]]
+    assert too_fast and w.s[too_fast[-1]] > 7.0
+    assert brake_first(w, v, checker, lim)
+    v = passes(w.s, w.cap, 60.0, lim)
+    assert all(v[k] <= w.cap[k] * (1.0 + 1e-9) for k in range(1, len(w.s)))
+    assert w.braking and w.s[1] < 6.0 and w.peak_cap[0] > 20.0
+    segment = (w.s[0], v[0], *segment_plan(w, 0, v, lim), w.s[1], w.acc[0])
+    assert checker.worst_of([segment]) == [None]
 
 
 def test_a_start_braking_in_one_segment_brakes_deeper_where_the_limit_falls_faster():
