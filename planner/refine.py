@@ -198,12 +198,15 @@ def _braking_cap(
     after the tip or the 14 mm before it: up to 20 s longer than planned at that override.
     """
 
+    trial = w.copy()
+    trial.merge_first(m, v_start)
+    # The scan does not see the peak cap: one scan serves every cap tried.
+    v, bad = passes(trial.s, trial.cap, v_start, lim, trial.acc, trial.pinned)
+    if bad is not None or _too_fast(v, trial.cap):
+        return None
+
     def holds(peak_cap: float) -> bool:
-        trial = w.copy()
-        trial.merge_first(m, peak_cap)
-        v, bad = passes(trial.s, trial.cap, v_start, lim, trial.acc, trial.pinned)
-        if bad is not None or _too_fast(v, trial.cap):
-            return False
+        trial.peak_cap[0] = peak_cap
         plan = segment_plan(trial, 0, v, lim)
         if plan is None:
             return False
