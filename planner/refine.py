@@ -133,7 +133,7 @@ def _refined(
 
 def _flatten(w: Window, k: int, checker: Checker) -> bool:
     """Hold segment k, and its end points, under the lowest limit it spans; whether it changed."""
-    floor = max(checker.interior_min(w.s[k], w.s[k + 1]), MIN_FEED_MM_S)
+    floor = _floor(w.s[k], w.s[k + 1], checker)
     changed = w.peak_cap[k] > floor
     w.peak_cap[k] = min(w.peak_cap[k], floor)
     for i in (k, k + 1):
@@ -197,7 +197,6 @@ def _braking_cap(
     holding its lowest limit held re-plans at a tip's feed, about 1 mm/s, over the staircase
     after the tip or the 14 mm before it: up to 20 s longer than planned at that override.
     """
-
     trial = w.copy()
     trial.merge_first(m, v_start)
     # The scan does not see the peak cap: one scan serves every cap tried.
@@ -210,9 +209,7 @@ def _braking_cap(
         plan = segment_plan(trial, 0, v, lim)
         if plan is None:
             return False
-        phases, v_top = plan
-        segment = (trial.s[0], v[0], phases, v_top, trial.s[1], trial.acc[0])
-        return checker.worst_of([segment]) == [None]
+        return checker.worst_of([_checked(trial, 0, v, plan)]) == [None]
 
     if holds(v_start):
         return v_start
@@ -230,12 +227,11 @@ def _failing(
 ) -> list[tuple[int, tuple[float, float, float]]]:
     """Failing segments, last first, with their worst excess (s, v_limit, v_planned)."""
     keys: dict[int, tuple] = {}
-    unchecked: dict[tuple, tuple[float, float, tuple[Phase, ...], float, float]] = {}
+    unchecked: dict[tuple, tuple[float, float, tuple[Phase, ...], float, float, float]] = {}
     for k in range(len(w.s) - 1):
         keys[k] = key = w.key(k, v)
         if key not in verdicts and key not in unchecked:
-            phases, v_top = segment_plan(w, k, v, lim)
-            unchecked[key] = (w.s[k], v[k], phases, v_top, w.s[k + 1], w.acc[k])
+            unchecked[key] = _checked(w, k, v, segment_plan(w, k, v, lim))
     verdicts.update(zip(unchecked, checker.worst_of(list(unchecked.values())), strict=True))
     out = []
     for k in range(len(w.s) - 2, -1, -1):
@@ -245,6 +241,14 @@ def _failing(
         elif verdicts[keys[k]] is not None:
             out.append((k, verdicts[keys[k]]))
     return out
+
+
+def _checked(
+    w: Window, k: int, v: list[float], plan: tuple[tuple[Phase, ...], float]
+) -> tuple[float, float, tuple[Phase, ...], float, float, float]:
+    """Segment k with its plan (phases, top feed) as :meth:`Checker.worst_of` takes it."""
+    phases, v_top = plan
+    return (w.s[k], v[k], phases, v_top, w.s[k + 1], w.acc[k])
 
 
 def _lower_for_cosine(w: Window, k: int, v: list[float], lim: PlanLimits) -> bool:

@@ -216,12 +216,9 @@ class Window:
         """A copy whose points and segments may be edited apart from this window's (the table
         of plans is shared)."""
         twin = Window(list(self.s), list(self.cap), list(self.fv_plan), self.plans, self.rest_mm)
-        twin.acc, twin.pinned, twin.flat_cap = (
-            list(self.acc),
-            list(self.pinned),
-            list(self.flat_cap),
-        )
-        twin.peak_cap, twin.cosine = list(self.peak_cap), list(self.cosine)
+        twin.acc, twin.pinned = list(self.acc), list(self.pinned)
+        twin.flat_cap, twin.peak_cap = list(self.flat_cap), list(self.peak_cap)
+        twin.cosine = list(self.cosine)
         twin.braking = self.braking
         return twin
 
