@@ -501,6 +501,11 @@ class RingOffer:
     ring: int
     job: int
     at_row: int
+    override_request: int = 0
+    """A splice: seq of the newest override change it plans with (0: a job's start)."""
+    rest_row: int = -1
+    """A splice that had to wait for the old rows' braking to rest (a sharp corner, the
+    approach's end): the row at that rest, the one before ``at_row``; else -1."""
 
 
 @dataclass(frozen=True)
@@ -515,7 +520,7 @@ class PlannerReport:
     offer: RingOffer | None = None
 
 
-_REPORT_LAYOUT = struct.Struct(f"<qq{FAILURE_TEXT_BYTES}sqqqq")
+_REPORT_LAYOUT = struct.Struct(f"<qq{FAILURE_TEXT_BYTES}sqqqqqq")
 
 
 class PlannerReports:
@@ -539,18 +544,20 @@ class PlannerReports:
             offer.ring,
             offer.job,
             offer.at_row,
+            offer.override_request,
+            offer.rest_row,
         )
 
     def latest(self) -> PlannerReport | None:
         values = self._cell.read()
         if values is None:
             return None
-        handled, failed_job, failure, offer_seq, ring, job, at_row = values
+        handled, failed_job, failure, offer_seq, *offer = values
         return PlannerReport(
             handled_request=handled,
             failed_job=failed_job,
             failure=_untext(failure),
-            offer=RingOffer(offer_seq, ring, job, at_row) if offer_seq else None,
+            offer=RingOffer(offer_seq, *offer) if offer_seq else None,
         )
 
 
@@ -659,7 +666,7 @@ class Mailbox:
 
 # -- status -----------------------------------------------------------------------------------
 
-_STATUS_HEAD = "IQBBB?BbH" + f"{FAULT_TEXT_BYTES}s" + "dddd" + "QfffffffQHI" + f"{MESSAGE_BYTES}s"
+_STATUS_HEAD = "IQBBB?BbH" + f"{FAULT_TEXT_BYTES}s" + "dddd" + "QfffffffQHHI" + f"{MESSAGE_BYTES}s"
 _PROGRAM_STATUS = f"qId{NAME_BYTES}s"
 _LATER_FAULT = f"HbH{FAULT_TEXT_BYTES}s"
 _RECORD = "qBIBB"
@@ -810,6 +817,7 @@ _STATUS_HEAD_FIELDS = (
     "execution_max_us",
     "missed_periods",
     "override_latency_periods",
+    "override_rest_wait_periods",
     "overrides_applied",
     "message",
     "program_id",
@@ -921,6 +929,7 @@ def _decode_status(values: tuple, axis_names: tuple[str, ...]) -> StatusSnapshot
             execution_max_us=v["execution_max_us"],
             missed_periods=v["missed_periods"],
             override_latency_periods=v["override_latency_periods"],
+            override_rest_wait_periods=v["override_rest_wait_periods"],
             overrides_applied=v["overrides_applied"],
         ),
         last_command=records[-1] if records else None,

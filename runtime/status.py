@@ -137,7 +137,11 @@ class CycleStatistics:
     execution_max_us: float = 0.0
     missed_periods: int = 0
     override_latency_periods: int = 0
-    """Periods from the last feed-override change to its first re-planned setpoint."""
+    """Periods from the last feed-override change the cycle switched to (the oldest one a
+    re-plan answers) to its first re-planned setpoint."""
+    override_rest_wait_periods: int = 0
+    """Of ``override_latency_periods``, the periods the plan still braked to a rest it had to
+    reach first (a sharp corner, the approach's end): no setpoint before that rest could change."""
     overrides_applied: int = 0
     """Feed-override changes whose re-planned setpoints were reached since start."""
 

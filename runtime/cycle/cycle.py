@@ -378,6 +378,7 @@ class Cycle:
             execution_max_us=stats.execution_max_us,
             missed_periods=stats.missed_periods,
             override_latency_periods=min(self.feed.override_latency_periods, 0xFFFF),
+            override_rest_wait_periods=min(self.feed.override_rest_wait_periods, 0xFFFF),
             overrides_applied=self.feed.overrides_applied & 0xFFFF_FFFF,
         )
         status.publish()

@@ -97,6 +97,16 @@ class Setpoint:
 
 
 @dataclass(frozen=True)
+class _OverrideChange:
+    """An override change waiting for the splice that answers it."""
+
+    request: int
+    """Seq of its CHANGE_LIMITS request."""
+    row: int
+    """The row the cycle took next when it was commanded."""
+
+
+@dataclass(frozen=True)
 class JobStart:
     """Where a job starts: a segment index and the motion state on it."""
 
@@ -131,10 +141,15 @@ class SetpointFeed:
         self.problem = ""
         """Why the last UNDERRUN or PLANNER_FAILED happened."""
         self.override_latency_periods = 0
-        """Periods from the last override change to its first re-planned setpoint."""
+        """Periods from the oldest override change the last splice answers to its first row."""
+        self.override_rest_wait_periods = 0
+        """Of those, the periods the old rows still braked to a rest the splice starts at."""
         self.overrides_applied = 0
         """Override changes whose re-planned setpoints have been reached."""
-        self._override_row = 0
+        self._override_changes: list[_OverrideChange] = []
+        """Changes of the followed job no splice has answered yet, oldest first."""
+        self._rest_row = -1
+        """The rest the last splice that waited for one started at."""
         self._segments: tuple[SegmentSpec, ...] = ()
         self._dimension = 0
         self._first_offer_taken = False
@@ -180,6 +195,7 @@ class SetpointFeed:
         self._switch = None
         self._hold_row = -1
         self._underrun_reported = False
+        self._forget_override_changes()
         self._post(
             PlanRequestKind.FOLLOW,
             segments=segments,
@@ -196,8 +212,8 @@ class SetpointFeed:
         if self.mode is FeedMode.STARTING:
             self.follow(self._segments, self._start_of_job(), override_percent)
         elif self.mode is FeedMode.PLANNED:
-            self._override_row = self._next_row
             self._post(PlanRequestKind.CHANGE_LIMITS)
+            self._override_changes.append(_OverrideChange(self._request_seq, self._next_row))
 
     def brake(self) -> None:
         """Brake to rest along the planned rows from the current feed and acceleration, now.
@@ -352,8 +368,7 @@ class SetpointFeed:
         if switch is not None and row >= switch.at_row:
             self._ring = switch.ring
             self._switch = None
-            self.override_latency_periods = row - self._override_row
-            self.overrides_applied += 1
+            self._count_override_changes(switch, row)
         ring = self._rings[self._ring]
         self._set_current(ring, row)
         self._hold_row = row
@@ -364,6 +379,24 @@ class SetpointFeed:
             self.mode = FeedMode.IDLE
             return FeedEvent.FINISHED
         return self._check_underrun()
+
+    def _count_override_changes(self, splice: RingOffer, row: int) -> None:
+        """The splice's first row ``row`` is taken: the changes it answers are in effect."""
+        if splice.rest_row >= 0:
+            self._rest_row = splice.rest_row
+        changes = self._override_changes
+        answered = 0
+        while answered < len(changes) and changes[answered].request <= splice.override_request:
+            answered += 1
+        if answered == 0:
+            return
+        oldest = changes[0].row
+        del changes[:answered]
+        self.override_latency_periods = row - oldest
+        # A change that came meanwhile waits for the same rest, even when its own splice
+        # (after that rest) did not.
+        self.override_rest_wait_periods = max(0, self._rest_row - oldest)
+        self.overrides_applied += answered
 
     def _at_rest(self) -> bool:
         now = self.current
@@ -472,6 +505,12 @@ class SetpointFeed:
         if self.mode in (FeedMode.STARTING, FeedMode.PLANNED):
             self._post(PlanRequestKind.CANCEL)
         self._switch = None
+        self._forget_override_changes()
+
+    def _forget_override_changes(self) -> None:
+        """No splice of the job followed so far will answer them (its rows count anew)."""
+        self._override_changes.clear()
+        self._rest_row = -1
 
     def _post(self, kind: PlanRequestKind, **fields: object) -> None:
         self._request_seq += 1

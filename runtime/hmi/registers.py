@@ -520,6 +520,12 @@ FIELDS: tuple[Field, ...] = (
         _STATS_BASE + 20,
         "periods from the last override change to its first re-planned setpoint",
     ),
+    _u16(
+        "OVERRIDE_REST_WAIT_PERIODS",
+        _I,
+        _STATS_BASE + 21,
+        "of those, periods the plan braked to a rest it had to reach first (corner, approach end)",
+    ),
     # Programs: element 0 the active program, 1 the next one.
     _program("PROGRAM_ID", 0, Kind.U32, "program id (0 = none)"),
     _program(
@@ -1108,6 +1114,7 @@ _MACHINE = (
     "MISSED_PERIODS",
     "OVERRIDES_APPLIED",
     "OVERRIDE_LATENCY_PERIODS",
+    "OVERRIDE_REST_WAIT_PERIODS",
 )
 _MACHINE_ROW = _Row(_MACHINE)
 _AXIS = (
@@ -1156,6 +1163,7 @@ def _put_machine(image: list[int], snapshot: StatusSnapshot, staging: StagingSta
         stats.missed_periods,
         stats.overrides_applied,
         stats.override_latency_periods,
+        stats.override_rest_wait_periods,
     )
     _MACHINE_ROW.put(image, row)
     for axis, axis_row in zip(snapshot.axes, _AXIS_ROWS, strict=False):
@@ -1313,6 +1321,7 @@ def decode_status(image: Sequence[int]) -> HmiStatus:
             execution_max_us=float(g("EXECUTION_MAX_US")),
             missed_periods=int(g("MISSED_PERIODS")),
             override_latency_periods=int(g("OVERRIDE_LATENCY_PERIODS")),
+            override_rest_wait_periods=int(g("OVERRIDE_REST_WAIT_PERIODS")),
             overrides_applied=int(g("OVERRIDES_APPLIED")),
         ),
         last_command=commands[-1] if commands else None,

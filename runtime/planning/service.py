@@ -93,6 +93,9 @@ class _Job:
     live: bool = False
     """The cycle accepted the job (its first offer)."""
     splice_override: float | None = None
+    override_request: int = 0
+    """Seq of the override change ``splice_override`` (or, for a splice, ``override_percent``)
+    comes from."""
     splice_lead: int = 0
     pending_state: tuple[int, MotionState, float | None] | None = None
     """Where the next stream of the job starts when none is open: segment, state, and for a
@@ -246,6 +249,7 @@ class PlannerService:
                 self._job = None
             elif request.kind is PlanRequestKind.CHANGE_LIMITS:
                 job.splice_override = request.override_percent
+                job.override_request = request.seq
                 job.splice_lead = self.splice_lead_periods
 
     def _start(self, request: PlanRequest) -> _Job:
@@ -297,9 +301,10 @@ class PlannerService:
 
     # -- offers ------------------------------------------------------------------------------
 
-    def _offer(self, job: _Job, ring: int, at_row: int) -> None:
+    def _offer(self, job: _Job, ring: int, at_row: int, rest_row: int = -1) -> None:
         self._offer_seq += 1
-        job.offer = RingOffer(self._offer_seq, ring, job.job, at_row)
+        override_request = job.candidate.override_request if job.candidate else 0
+        job.offer = RingOffer(self._offer_seq, ring, job.job, at_row, override_request, rest_row)
         self._report = PlannerReport(
             handled_request=self._report.handled_request,
             failed_job=self._report.failed_job,
@@ -422,6 +427,7 @@ class PlannerService:
         row = cycle.next_row + job.splice_lead
         last_planned = ring.write_count - 1
         braking_end = None
+        rest_row = -1
         if row <= last_planned and ring.accel_mm_s2[ring.slot(row)] < -BRAKING_TOLERANCE_MM_S2:
             slots = ring.slots(row, last_planned + 1)
             end = braking_end_from_rows(
@@ -434,6 +440,7 @@ class PlannerService:
                 # Braking to rest (a sharp corner, a segment's end): braking harder would stop
                 # short of it; the re-plan starts at that rest instead.
                 row, braking_end = row + end.row, None
+                rest_row = row
         if row > last_planned and not job.done:
             return self._extend_for_splice(job, ring)
         if row > last_planned or self._row_has(ring, row, RowFlag.LAST_OF_JOB):
@@ -468,6 +475,7 @@ class PlannerService:
             block_periods=max(self.block_periods, cover),
             live=True,
             override_percent=override,
+            override_request=job.override_request,
         )
         spliced.pending_state = (segment, state, braking_end)
         while other.write_count - other.first_row < cover:
@@ -480,7 +488,7 @@ class PlannerService:
         if now.next_row > row + 1:
             self._try_further_ahead(job)  # the cycle took the first new row meanwhile
         else:
-            self._offer(job, other_index, row + 1)
+            self._offer(job, other_index, row + 1, rest_row)
         return True
 
     def _try_further_ahead(self, job: _Job) -> None:
@@ -520,7 +528,7 @@ class PlannerService:
         job.block_periods = spliced.block_periods
         job.pending_state = spliced.pending_state
         job.override_percent = spliced.override_percent
-        if job.splice_override == spliced.override_percent:
+        if job.override_request == spliced.override_request:
             job.splice_override = None
         job.candidate = None
 

@@ -306,8 +306,41 @@ def test_an_override_given_as_the_approach_brakes_to_the_program_start_applies_f
     program_starts_at = next(k for k, sp in enumerate(h.setpoints) if sp.segment == 1)
     assert len(h.setpoints) - 1 == program_starts_at
     assert h.status.stats.override_latency_periods == program_starts_at - commanded_at
+    # All but the program's first row braked to the rest at its start.
+    assert h.status.stats.override_rest_wait_periods == program_starts_at - commanded_at - 1
     h.until(lambda s: s.state is MachineState.STANDBY, 5000)
     assert max(sp.feed_mm_s for sp in h.setpoints if sp.segment == 1) <= 50.0 * (1 + 1e-9)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_each_override_given_as_the_approach_brakes_counts_from_its_own_command(
+    h: Harness,
+) -> None:
+    """A second change while the first waits for the approach's rest: the first one's latency
+    counts from its own command (not the second's). The second one's is three periods beyond
+    that rest: its splice is planned once the cycle reads the first one's rows (the other ring
+    is the one it leaves)."""
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: s.phase is MotionPhase.APPROACH and h.setpoints[-1].accel_mm_s2 < 0.0, 2000)
+    first_at = len(h.setpoints)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=50.0)
+    h.period(5)
+    second_at = len(h.setpoints)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=30.0)
+    h.until(lambda s: s.stats.overrides_applied == 1, 500)
+    program_starts_at = next(k for k, sp in enumerate(h.setpoints) if sp.segment == 1)
+    assert program_starts_at - second_at > 2  # the second came before the rest
+    stats = h.status.stats
+    assert stats.override_latency_periods == program_starts_at - first_at
+    assert stats.override_rest_wait_periods == program_starts_at - first_at - 1
+    h.until(lambda s: s.stats.overrides_applied == 2, 50)
+    stats = h.status.stats
+    assert stats.override_latency_periods == len(h.setpoints) - 1 - second_at
+    assert stats.override_rest_wait_periods == program_starts_at - 1 - second_at
+    assert stats.override_latency_periods - stats.override_rest_wait_periods == 3
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    assert max(sp.feed_mm_s for sp in h.setpoints if sp.segment == 1) <= 30.0 * (1 + 1e-9)
     check_limits(h.target_array(), VMAX)
     check_on_curve_and_end(h, h.program_under_test)
 
