@@ -54,7 +54,7 @@ from runtime.version import version_numbers
 #: Identity magic: "SM" in ASCII.
 MAGIC = 0x534D
 #: Version of this register map; bumped on any change of an address or a meaning.
-MAP_VERSION = 2
+MAP_VERSION = 3
 #: Test pattern of the identity block: 123456.0 reads [0x47F1, 0x2000] in ABCD order.
 TEST_FLOAT = 123456.0
 TEST_U32 = 0x12345678
