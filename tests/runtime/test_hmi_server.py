@@ -34,6 +34,8 @@ from runtime.hmi.registers import (
     FIELD,
     HOLDING_HEAD_END,
     INPUT_SIZE,
+    MAGIC,
+    MAP_VERSION,
     STATE_STARTING,
     HmiStatus,
     LibraryState,
@@ -604,7 +606,7 @@ def test_serve_hmi_runs_in_its_process_until_sigterm(tmp_path: Path) -> None:
                 assert time.monotonic() < end and process.is_alive(), "serve_hmi did not listen"
                 time.sleep(0.05)
         with wire:
-            assert wire.read_input(0, 2) == [0x534D, 2]
+            assert wire.read_input(0, 2) == [MAGIC, MAP_VERSION]
             os.kill(process.pid, signal.SIGTERM)
             assert wire.closed_by_server(timeout_s=10.0)
         process.join(10.0)
