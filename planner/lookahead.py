@@ -186,6 +186,11 @@ def plan_segments(
         horizon = s + window_mm + extra + TAIL_WINDOW_FRACTION * window_mm
         reach = arc.extent_mm(horizon)
         curve_end = reach if reach < horizon else math.inf
+        if v == 0.0 and 0.0 < curve_end - s <= MIN_POINT_GAP_MM:
+            # At rest a hair before the end (a stop came to rest there): no window fits, and
+            # the motion still ends exactly on the end point.
+            yield [SegmentPlan((), curve_end, 0.0)]
+            break
         if s >= curve_end or not (s < stop_at or v > 0.0):
             break
         target = min(stop_at, curve_end)

@@ -11,7 +11,7 @@ import yaml
 
 from planner.nurbs import NurbsCurve
 from planner.stream import Path, plan_setpoints
-from planner.types import Limits
+from planner.types import Limits, MotionState
 
 T = 0.004
 PAPER = FilePath(__file__).resolve().parents[2] / "configs" / "curves" / "paper.yaml"
@@ -39,6 +39,17 @@ def test_limits_hold_on_the_setpoints(curve, delta_mm):
     assert block.last and block.feed_mm_s[-1] == 0.0 and block.accel_mm_s2[-1] == 0.0
     assert np.array_equal(block.position_mm[-1], curve.end_point)
     assert not np.isnan(block.position_mm).any()
+
+
+@pytest.mark.parametrize("short_of_end_mm", [4e-14, 1e-9, 1e-7])
+def test_a_start_at_rest_a_hair_before_the_end_lands_exactly_on_it(curve, short_of_end_mm):
+    """A stop can come to rest within round-off of the end; the resume still ends on it."""
+    limits = paper_limits(1e-3)
+    path = Path(curve, limits, T)
+    start = MotionState(path.length_mm - short_of_end_mm)
+    block = plan_setpoints(path, limits, T, start=start)
+    assert block.last and block.s_mm[-1] == path.length_mm
+    assert np.array_equal(block.position_mm[-1], curve.end_point)
 
 
 def test_corrected_update_follows_the_planned_arc_length(curve):
