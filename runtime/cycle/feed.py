@@ -13,11 +13,13 @@ plan keep the stream smooth:
   are made again further ahead.
 - Hold, stop and fault stops brake at once, here in the cycle, with the closed-form jerk-limited
   :class:`planner.braking.BrakingProfile` from the current feed and acceleration, along the
-  polyline of the rows already planned ahead. A jerk-limited stop never travels farther in a
-  given time than any plan with the same limits, so those rows always reach past the stopping
-  point; positions between two rows are interpolated on their chord, whose distance from the
-  curve the chord-error limit bounds (eq. (3)). So no planner is needed to stop, and a dead or
-  late planner never makes the path jump.
+  rows already planned ahead. A jerk-limited stop never travels farther in a given time than
+  any plan with the same limits, so those rows always reach past the stopping point; positions
+  between two rows are interpolated on a cubic through them (:meth:`SetpointFeed._on_rows`),
+  within a small fraction of the chord error of the curve. So no planner is needed to stop,
+  and a dead or late planner never makes the path jump.
+- A resume starts where the stop came to rest, a hair off the curve its rows start on: the
+  setpoint first moves onto the curve, at rest (:meth:`SetpointFeed._settled_onto_rows`).
 - Underrun: while following a plan, the rows planned ahead must always cover the braking time
   from the current feed and acceleration plus :data:`UNDERRUN_MARGIN_PERIODS`; when they no longer
   do (the planner fell behind), :meth:`take` reports UNDERRUN once, and the machine stops on the
@@ -36,6 +38,8 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
+import numpy as np
+
 from planner.braking import BrakingProfile
 from runtime.shared import (
     CycleReport,
@@ -49,6 +53,10 @@ from runtime.shared import (
     SharedState,
 )
 
+#: A resume whose rows start closer than this to where the setpoint rests starts at once [mm].
+SETTLE_NEGLIGIBLE_MM = 1e-9
+#: Largest |third derivative| of the septic smoothstep 35x⁴ - 84x⁵ + 70x⁶ - 20x⁷ on [0, 1].
+SMOOTHSTEP_PEAK_JERK = 52.5
 #: Rows beyond the braking time the planner must keep ahead while moving.
 UNDERRUN_MARGIN_PERIODS = 2
 #: At rest between two segments the feed waits this long for the next rows before it calls the
@@ -94,6 +102,17 @@ class Setpoint:
     accel_mm_s2: float = 0.0
     segment: int = -1
     """Index of the job's segment (-1: not on a job's path)."""
+
+
+@dataclass
+class _Settle:
+    """The setpoint's move onto the curve before a resume's rows (see
+    :meth:`SetpointFeed._settled_onto_rows`)."""
+
+    from_mm: np.ndarray
+    to_mm: np.ndarray
+    periods: int
+    taken: int = 0
 
 
 @dataclass(frozen=True)
@@ -151,6 +170,8 @@ class SetpointFeed:
         self._rest_row = -1
         """The rest the last splice that waited for one started at."""
         self._segments: tuple[SegmentSpec, ...] = ()
+        self._job_start = JobStart()
+        self._settle: _Settle | None = None
         self._dimension = 0
         self._first_offer_taken = False
         self._job = 0
@@ -189,12 +210,14 @@ class SetpointFeed:
         """
         self._job += 1
         self._segments = segments
+        self._job_start = start
         self._dimension = _dimension(segments)
         self._first_offer_taken = False
         self._override_percent = override_percent
         self._switch = None
         self._hold_row = -1
         self._underrun_reported = False
+        self._settle = None
         self._forget_override_changes()
         self._post(
             PlanRequestKind.FOLLOW,
@@ -210,7 +233,7 @@ class SetpointFeed:
         """Re-plan the rest of the job with a new feed override (> 0), spliced ahead."""
         self._override_percent = override_percent
         if self.mode is FeedMode.STARTING:
-            self.follow(self._segments, self._start_of_job(), override_percent)
+            self.follow(self._segments, self._job_start, override_percent)
         elif self.mode is FeedMode.PLANNED:
             self._post(PlanRequestKind.CHANGE_LIMITS)
             self._override_changes.append(_OverrideChange(self._request_seq, self._next_row))
@@ -247,6 +270,12 @@ class SetpointFeed:
         self.current = Setpoint(tuple(position_mm))
         self._publish()
 
+    def awaited(self) -> tuple[tuple[SegmentSpec, ...], JobStart] | None:
+        """The job asked for whose first rows have not come yet (mode STARTING), or None."""
+        if self.mode is not FeedMode.STARTING:
+            return None
+        return self._segments, self._job_start
+
     def remaining(self) -> tuple[tuple[SegmentSpec, ...], JobStart] | None:
         """The rest of the last job from where the setpoint rests (for a resume), or None when
         the setpoint is not on a job's path."""
@@ -267,7 +296,7 @@ class SetpointFeed:
             if self.mode is FeedMode.BRAKING:
                 event = self._take_braking()
             elif self.mode is FeedMode.STARTING:
-                if self._started():
+                if self._started() and self._settled_onto_rows():
                     self.mode = FeedMode.PLANNED
                     event = self._take_planned()
             elif self.mode is FeedMode.PLANNED:
@@ -352,6 +381,60 @@ class SetpointFeed:
         if not self._first_offer_taken:
             return False
         return self._available_end() >= self.start_lead_periods or self._job_complete()
+
+    def _settled_onto_rows(self) -> bool:
+        """Whether the setpoint is where the job's rows start; else it moves there one step.
+
+        A stop comes to rest between two rows, on the chord between them (within the chord
+        error of the curve), and a resume's rows start on the curve: up to the chord error
+        away. Taken at once, that step is a jerk of up to chord error / T³ (15,600 mm/s³ for
+        1 µm at 4 ms). So the setpoint first moves onto the curve at rest, along a septic
+        smoothstep (no step in feed, acceleration or jerk) at no more than half of jmax.
+        """
+        settle = self._settle
+        if settle is None:
+            target = self._curve_point_at_rest()
+            if target is None:
+                return True
+            here = np.array(self.current.position_mm)
+            offset_mm = float(np.linalg.norm(target - here))
+            if offset_mm <= SETTLE_NEGLIGIBLE_MM:
+                return True
+            duration_s = (2.0 * SMOOTHSTEP_PEAK_JERK * offset_mm / self._jmax) ** (1.0 / 3.0)
+            settle = self._settle = _Settle(
+                here, target, max(2, math.ceil(duration_s / self._period_s))
+            )
+        settle.taken += 1
+        now = self.current
+        if settle.taken >= settle.periods:
+            position = tuple(settle.to_mm.tolist())
+            self._settle = None
+        else:
+            x = settle.taken / settle.periods
+            weight = x**4 * (35.0 - 84.0 * x + 70.0 * x * x - 20.0 * x**3)
+            position = tuple((settle.from_mm + weight * (settle.to_mm - settle.from_mm)).tolist())
+        self.current = Setpoint(position, now.s_mm, 0.0, 0.0, now.segment)
+        return False
+
+    def _curve_point_at_rest(self) -> np.ndarray | None:
+        """For a resume on the path, the curve point where the setpoint rests, from the job's
+        first two rows (a start from rest: extrapolated back over a step a seventh of the
+        next, to a few nanometres on the tightest curves); None for any other start."""
+        now = self.current
+        if now.segment < 0 or self._available_end() < 2:
+            return None
+        ring = self._rings[self._ring]
+        first, second = ring.slot(0), ring.slot(1)
+        if int(ring.segment[first]) != now.segment or int(ring.segment[second]) != now.segment:
+            return None
+        dimension = self._dimension
+        p0, s0 = ring.position_mm[first, :dimension], float(ring.s_mm[first])
+        if s0 <= now.s_mm:
+            return p0.copy()
+        p1, s1 = ring.position_mm[second, :dimension], float(ring.s_mm[second])
+        if s1 <= s0:
+            return None
+        return p0 - (p1 - p0) * ((s0 - now.s_mm) / (s1 - s0))
 
     def _take_planned(self) -> FeedEvent:
         row = self._next_row
@@ -442,8 +525,10 @@ class SetpointFeed:
     def _take_braking(self) -> FeedEvent:
         profile = self._braking
         if profile is None:
+            # At rest already: it stays where it is on the path (a resume goes on from there).
+            now = self.current
             self.mode = FeedMode.IDLE
-            self.current = Setpoint(self.current.position_mm, self.current.s_mm, 0.0, 0.0, -1)
+            self.current = Setpoint(now.position_mm, now.s_mm, 0.0, 0.0, now.segment)
             return FeedEvent.STOPPED
         self._braking_t_s += self._period_s
         distance, feed, accel = profile.sample(self._braking_t_s)
@@ -458,7 +543,7 @@ class SetpointFeed:
                 break
             cursor += 1
         self._cursor = cursor
-        position, s = self._on_polyline(cursor, s, segment, end)
+        position, s = self._on_rows(cursor, s, segment, end)
         at_rest = self._braking_t_s >= profile.duration_s
         if at_rest:
             feed, accel = 0.0, 0.0
@@ -469,42 +554,77 @@ class SetpointFeed:
         self.mode = FeedMode.IDLE
         return FeedEvent.STOPPED
 
-    def _on_polyline(
+    def _on_rows(
         self, row: int, s: float, segment: int, end: int
     ) -> tuple[tuple[float, ...], float]:
-        """The point at arc length ``s`` between row ``row`` and the next one of ``segment``
-        (the chord between them), clamped to the last row available."""
+        """The point at arc length ``s`` between row ``row`` and the next one of ``segment``,
+        clamped to the last row available.
+
+        On the cubic Hermite curve through the two rows, in arc length, with tangents from
+        their neighbouring rows: braking is slower than the plan at every point of the path,
+        so its steps are shorter than the planned ones, and a point on the curve keeps its
+        chord within the chord error. Points on the chord between the rows (the sagitta of a
+        planned step inside the curve already, up to the chord error) measured up to 1.6 times
+        it across a row on the paper's curve. Where the rows turn by more than a right angle (a
+        corner or cusp, where the plan comes to rest and its steps are tiny) it is that chord.
+        """
+        here, s_here = self._row_point(row)
+        if row + 1 >= end or self._row_segment(row + 1) != segment:
+            return tuple(here.tolist()), s_here
+        there, s_next = self._row_point(row + 1)
+        if s_next <= s_here:
+            return tuple(here.tolist()), s_here
+        s = max(s_here, min(s, s_next))
+        x = (s - s_here) / (s_next - s_here)
+        chord = there - here
+        point = here + x * chord
+        step_mm = s_next - s_here
+        start = self._row_tangent(row, segment, end, chord)
+        finish = self._row_tangent(row + 1, segment, end, chord)
+        if start is not None and finish is not None:
+            # Hermite basis, as corrections to the chord's linear blend.
+            point += (x * (1.0 - x) ** 2) * (step_mm * start - chord) - (x * x * (1.0 - x)) * (
+                step_mm * finish - chord
+            )
+        return tuple(point.tolist()), s
+
+    def _row_point(self, row: int) -> tuple[np.ndarray, float]:
         ring = self._ring_of(row)
         slot = ring.slot(row)
-        dimension = self._dimension
-        here = ring.position_mm[slot, :dimension]
-        s_here = float(ring.s_mm[slot])
-        if row + 1 < end:
-            after = self._ring_of(row + 1)
-            next_slot = after.slot(row + 1)
-            s_next = float(after.s_mm[next_slot])
-            if int(after.segment[next_slot]) == segment and s_next > s_here:
-                fraction = min(1.0, max(0.0, (s - s_here) / (s_next - s_here)))
-                there = after.position_mm[next_slot, :dimension]
-                return tuple((here + fraction * (there - here)).tolist()), max(
-                    s_here, min(s, s_next)
-                )
-        return tuple(here.tolist()), s_here
+        return ring.position_mm[slot, : self._dimension], float(ring.s_mm[slot])
+
+    def _row_segment(self, row: int) -> int:
+        ring = self._ring_of(row)
+        return int(ring.segment[ring.slot(row)])
+
+    def _row_tangent(
+        self, row: int, segment: int, end: int, chord: np.ndarray
+    ) -> np.ndarray | None:
+        """d(position)/ds at ``row`` from the rows either side (one side at a segment's or the
+        rows' end); None where the rows turn by more than a right angle there or do not
+        move."""
+        ahead = row + 1 if row + 1 < end and self._row_segment(row + 1) == segment else row
+        behind = row - 1 if row > 0 and self._row_segment(row - 1) == segment else row
+        p_ahead, s_ahead = self._row_point(ahead)
+        p_behind, s_behind = self._row_point(behind)
+        if s_ahead <= s_behind:
+            return None
+        tangent = (p_ahead - p_behind) / (s_ahead - s_behind)
+        if float(np.dot(tangent, chord)) <= 0.0:
+            return None
+        if ahead != row and behind != row:
+            here, _ = self._row_point(row)
+            if float(np.dot(p_ahead - here, here - p_behind)) <= 0.0:
+                return None
+        return tangent
 
     # -- bookkeeping -------------------------------------------------------------------------
-
-    def _start_of_job(self) -> JobStart:
-        request = self._shared.planner_requests.latest()
-        if request is None or request.job != self._job:
-            return JobStart()
-        return JobStart(
-            request.start_segment, request.start_s_mm, request.start_v_mm_s, request.start_a_mm_s2
-        )
 
     def _cancel_job(self) -> None:
         if self.mode in (FeedMode.STARTING, FeedMode.PLANNED):
             self._post(PlanRequestKind.CANCEL)
         self._switch = None
+        self._settle = None
         self._forget_override_changes()
 
     def _forget_override_changes(self) -> None:
@@ -530,7 +650,8 @@ class SetpointFeed:
         """Tell the planner where the cycle reads and which rows it may still need."""
         following = self.mode in (FeedMode.PLANNED, FeedMode.STARTING, FeedMode.BRAKING)
         job = self._job if following else 0
-        held = self._cursor if self.mode is FeedMode.BRAKING else max(0, self._next_row - 1)
+        # From the row before the one braking starts or goes on from: a tangent's neighbour.
+        held = max(0, (self._cursor if self.mode is FeedMode.BRAKING else self._next_row - 1) - 1)
         for index, ring in enumerate(self._rings):
             in_use = following and (
                 index == self._ring or (self._switch is not None and index == self._switch.ring)

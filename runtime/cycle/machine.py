@@ -446,6 +446,7 @@ class Machine:
 
     def _brake(self) -> None:
         """Brake on the path now (a job asked for but not begun stays pending for a resume)."""
+        self._start_job = self.feed.awaited() or self._start_job
         self.feed.brake()
 
     def _quick_stop(self) -> None:
@@ -471,7 +472,9 @@ class Machine:
         mode = self.feed.mode
         if mode is FeedMode.BRAKING:
             return MotionPhase.BRAKING
-        if mode is FeedMode.STARTING or (mode is FeedMode.IDLE and self._start_job is not None):
+        if mode is FeedMode.STARTING or (
+            mode is FeedMode.IDLE and self._start_job is not None and self._continue
+        ):
             return MotionPhase.STARTING
         segment = self.feed.current.segment
         if mode is FeedMode.IDLE or segment < 0:

@@ -82,6 +82,75 @@ def test_hold_then_resume_stays_on_the_curve_and_smooth(h: Harness) -> None:
     check_on_curve_and_end(h, h.program_under_test)
 
 
+def test_a_hold_before_the_first_rows_come_keeps_the_job_for_the_resume(h: Harness) -> None:
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.period(5, plan=False)  # the planner has not answered yet
+    assert h.status.phase is MotionPhase.STARTING
+    h.command(CommandCode.HOLD)
+    h.period(10)
+    assert h.status.state is MachineState.HOLDING and h.status.phase is MotionPhase.IDLE
+    h.command(CommandCode.RESUME)
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    assert h.status.message == "program finished"
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+@pytest.mark.parametrize("periods_into_the_program", [240, 250])
+def test_a_hold_braking_across_a_tight_stretch_keeps_the_chord_error(
+    h: Harness, periods_into_the_program: int
+) -> None:
+    """Braking from about 80 mm/s through the curvature peak near s = 94 mm: between two rows
+    the setpoints follow the curve, not the chord (points on the chords measured 1.58 delta)."""
+    assert h.command(CommandCode.START) is CommandResult.DONE
+    h.until(lambda s: s.phase is MotionPhase.PROGRAM, 2000)
+    h.period(periods_into_the_program)
+    h.command(CommandCode.HOLD)
+    h.until(lambda s: s.feed_mm_s == 0.0, 100)
+    h.command(CommandCode.RESUME)
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_a_resume_from_a_rest_off_the_curve_moves_onto_it_smoothly(h: Harness) -> None:
+    """A stop comes to rest between two rows, a hair off the curve the resume's rows start on:
+    here the chord error itself. The setpoint moves onto the curve at rest first; taken at once
+    that step was a jerk of 15,600 mm/s^3 on top of the start's own."""
+    start(h, 60.0)
+    h.command(CommandCode.HOLD)
+    h.until(lambda s: s.feed_mm_s == 0.0, 100)
+    h.period(2)
+    feed = h.cycle.feed
+    rest = feed.current
+    off_mm = np.array(rest.position_mm) + np.array([DELTA, 0.0, 0.0])
+    feed.current = type(rest)(tuple(off_mm.tolist()), rest.s_mm, 0.0, 0.0, rest.segment)
+    h.period(3)
+    resumed_at = len(h.targets)
+    assert tuple(h.target_array()[-1]) == tuple(off_mm)
+    h.command(CommandCode.RESUME)
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    check_limits(h.target_array()[resumed_at - 3 :], VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
+def test_a_hold_at_rest_on_the_path_keeps_the_job_for_the_resume(h: Harness) -> None:
+    """Override 0 stops on the path; a hold there and a resume go on with the program."""
+    start(h, 20.0)
+    h.command(CommandCode.SET_OVERRIDE, override_percent=0.0)
+    h.until(lambda s: s.feed_mm_s == 0.0 and s.phase is MotionPhase.IDLE, 100)
+    stopped_at_mm = h.status.path_s_mm
+    h.command(CommandCode.HOLD)
+    h.period(5)
+    assert h.status.state is MachineState.HOLDING and h.status.path_s_mm == stopped_at_mm
+    h.command(CommandCode.SET_OVERRIDE, override_percent=100.0)
+    h.command(CommandCode.RESUME)
+    h.until(lambda s: s.state is MachineState.STANDBY, 5000)
+    assert h.status.message == "program finished"
+    check_limits(h.target_array(), VMAX)
+    check_on_curve_and_end(h, h.program_under_test)
+
+
 def test_hold_changes_the_setpoint_in_the_period_it_is_applied(h: Harness) -> None:
     start(h, 60.0)
     before = [sp.feed_mm_s for sp in h.setpoints[-3:]]
