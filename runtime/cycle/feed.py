@@ -600,23 +600,30 @@ class SetpointFeed:
     def _row_tangent(
         self, row: int, segment: int, end: int, chord: np.ndarray
     ) -> np.ndarray | None:
-        """d(position)/ds at ``row`` from the rows either side (one side at a segment's or the
-        rows' end); None where the rows turn by more than a right angle there or do not
-        move."""
-        ahead = row + 1 if row + 1 < end and self._row_segment(row + 1) == segment else row
-        behind = row - 1 if row > 0 and self._row_segment(row - 1) == segment else row
-        p_ahead, s_ahead = self._row_point(ahead)
-        p_behind, s_behind = self._row_point(behind)
-        if s_ahead <= s_behind:
-            return None
-        tangent = (p_ahead - p_behind) / (s_ahead - s_behind)
-        if float(np.dot(tangent, chord)) <= 0.0:
-            return None
-        if ahead != row and behind != row:
-            here, _ = self._row_point(row)
-            if float(np.dot(p_ahead - here, here - p_behind)) <= 0.0:
+        """The unit tangent at ``row``, from the rows either side (second order on their
+        uneven steps; one side at a segment's or the rows' end). Unit: the rows lie on the
+        curve in arc length, and a shorter one slows the cubic between rows (a tangent from
+        the chords' mean measured 0.3 % feed ripple, 5 % of jmax while braking). None where
+        the rows turn by more than a right angle there or do not move."""
+        here, s_here = self._row_point(row)
+        before = row - 1 if row > 0 and self._row_segment(row - 1) == segment else row
+        after = row + 1 if row + 1 < end and self._row_segment(row + 1) == segment else row
+        p_before, s_before = self._row_point(before)
+        p_after, s_after = self._row_point(after)
+        back_mm, ahead_mm = s_here - s_before, s_after - s_here
+        if back_mm > 0.0 and ahead_mm > 0.0:
+            behind, ahead = here - p_before, p_after - here
+            if float(np.dot(behind, ahead)) <= 0.0:
                 return None
-        return tangent
+            tangent = back_mm * back_mm * ahead + ahead_mm * ahead_mm * behind
+        elif back_mm > 0.0 or ahead_mm > 0.0:
+            tangent = p_after - p_before
+        else:
+            return None
+        length = float(np.linalg.norm(tangent))
+        if length == 0.0 or float(np.dot(tangent, chord)) <= 0.0:
+            return None
+        return tangent / length
 
     # -- bookkeeping -------------------------------------------------------------------------
 
