@@ -1,6 +1,6 @@
 """Planner benchmark (not a test): time-optimality, first block, real-time factors, re-plans.
 
-- Motion time per curve family (tests/planner/curve_families.py: the paper's curve, folding
+- Motion time per curve family (tests/curve_families.py: the paper's curve, folding
   polygons with cusps and 0.02 mm near-cusps, loops, free control polygons), delta 1 µm and the
   paper's limits, against the acceleration-limited lower bound and against a jerk-limited
   reference (bench/jerk_reference.py: a sequential linear program in v², zero acceleration at
@@ -32,7 +32,6 @@ import yaml
 
 ROOT = FilePath(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "tests" / "planner"))
 
 import curve_families as cf  # noqa: E402
 import feed_bound as fb  # noqa: E402

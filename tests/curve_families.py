@@ -21,7 +21,7 @@ import yaml
 
 from planner.nurbs import NurbsCurve
 
-PAPER = Path(__file__).resolve().parents[2] / "configs" / "curves" / "paper.yaml"
+PAPER = Path(__file__).resolve().parents[1] / "configs" / "curves" / "paper.yaml"
 #: Sideways offset of a near fold of a 10 mm polygon leg: radius about 0.019 d² / mm at the tip.
 NEAR_FOLD_OFFSET_MM = 0.7
 
