@@ -2,9 +2,10 @@
 from the planner's rings stays on the curve and smooth.
 
 Measured on the targets the machine gives the drives each period (finite differences, as a
-drive sees them), with ideal drives, the paper's curve and limits (T = 4 ms, vmax 100 mm/s,
-amax 1000 mm/s², jmax 20000 mm/s³, chord error 1 µm). Braking follows the chords between the
-planned rows, so it too stays within the chord error of the curve.
+drive sees them), with ideal drives, the paper's curve (and the curve families in the random
+operator sequences) and limits (T = 4 ms, vmax 100 mm/s, amax 1000 mm/s², jmax 20000 mm/s³,
+chord error 1 µm). Braking follows a cubic through the planned rows, so it too stays within the
+chord error of the curve.
 """
 
 from __future__ import annotations
