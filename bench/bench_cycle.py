@@ -370,7 +370,7 @@ def print_override_latency(report: dict) -> None:
         f"  {waited.sum()} came while the plan braked to a rest it had to reach first (the "
         "approach's end or a sharp corner: no setpoint before it can change); periods beyond "
         f"that rest: max {beyond.max() if len(beyond) else 0}. The other {len(free)}: "
-        f"{np.mean(free <= 2) if len(free) else 1.0:.0%} within 2, "
+        f"{np.mean(free <= 2) if len(free) else 1.0:.1%} within 2, "
         f"max {free.max() if len(free) else 0}"
     )
 
