@@ -30,7 +30,7 @@ from planner.checker import CHECK_SLACK, Checker
 from planner.envelope import MIN_FEED_MM_S
 from planner.profiles import Phase
 from planner.profiles.cosine import cosine_fits, cosine_max_high_speed, cosine_time_s
-from planner.profiles.scurve import settled_speed
+from planner.profiles.scurve import ramp_distance_mm, settled_speed
 from planner.window import (
     MIN_POINT_GAP_MM,
     PlanLimits,
@@ -153,7 +153,9 @@ def brake_first(w: Window, v: list[float], checker: Checker, lim: PlanLimits) ->
     the points up to the first one a braking segment meets are removed (:func:`_braking_cap`).
     Where no point is met so, the points up to the first rest, or past the last one too fast,
     are removed, and the one segment left brakes at once down to the lowest limit it spans and
-    holds it (to the window's end if the plan cannot even stop there).
+    holds it (to the window's end if the plan cannot even stop there). Where the segment so
+    found holds that lowest limit, it ends instead where braking at once meets the limit,
+    when it comes there faster (:func:`_flank_braking`).
     """
     over = _too_fast(v, w.cap)
     if not over:
@@ -170,8 +172,72 @@ def brake_first(w: Window, v: list[float], checker: Checker, lim: PlanLimits) ->
             break
     else:
         m, peak_cap = last, _floor(w.s[0], w.s[last], checker)
+    if peak_cap <= _floor(w.s[0], w.s[m], checker):
+        flank = _flank_braking(w, m, v[0], checker, lim)
+        if flank is not None:
+            k, s_end, v_end, trial = flank
+            merged = w.copy()
+            merged.merge_first(m, peak_cap)
+            if _time_to(trial, w.s[m], v[0], lim) < _time_to(merged, w.s[m], v[0], lim):
+                w.insert(k, s_end, v_end)
+                w.merge_first(k + 1, v[0])
+                return True
     w.merge_first(m, peak_cap)
     return True
+
+
+def _time_to(w: Window, s_mm: float, v_start: float, lim: PlanLimits) -> float:
+    """Planned time from the start to the point at ``s_mm`` (speeds as the scan finds them)."""
+    v, _ = passes(w.s, w.cap, v_start, lim, w.acc, w.pinned)
+    return sum(segment_time_s(w, k, v, lim) for k in range(w.s.index(s_mm)))
+
+
+def _flank_braking(
+    w: Window, m: int, v_start: float, checker: Checker, lim: PlanLimits
+) -> tuple[int, float, float, Window] | None:
+    """Where one segment braking at once from the start can end before point ``m``: the
+    segment k to split, the new point's s and its feed, the highest feed (to a 64th of the
+    range) with the segment under the limit and every point after it reached at or under its
+    cap, and the window so; None if even the lowest limit it spans is too fast.
+
+    A segment to point m that has to brake at once and hold a low feed (the lowest limit over
+    it, a tip's) to get there holds it over the flank before the tip: a cold re-plan of a cusp
+    curve crept at 0.9 mm/s for 0.6 mm. Ended on the flank, where the braking meets the limit,
+    the plan follows the limit down from there.
+    """
+    s0, s_m = w.s[0], w.s[m]
+
+    def braked(v_end: float) -> tuple[int, float, float, Window] | None:
+        s_end = s0 + ramp_distance_mm(v_start, v_end, lim.A, lim.J)
+        if not s0 + MIN_POINT_GAP_MM < s_end < s_m - MIN_POINT_GAP_MM:
+            return None
+        k = max(j for j in range(m) if w.s[j] < s_end)
+        if s_end - w.s[k] <= MIN_POINT_GAP_MM:
+            return None
+        trial = w.copy()
+        trial.insert(k, s_end, v_end)
+        trial.merge_first(k + 1, v_start)
+        v, bad = passes(trial.s, trial.cap, v_start, lim, trial.acc, trial.pinned)
+        if bad is not None or _too_fast(v, trial.cap):
+            return None
+        plan = segment_plan(trial, 0, v, lim)
+        if plan is None or checker.worst_of([_checked(trial, 0, v, plan)]) != [None]:
+            return None
+        return k, s_end, v_end, trial
+
+    low = _floor(s0, s_m, checker)
+    best = braked(low)
+    if best is None:
+        return None
+    high = v_start
+    for _ in range(BRAKING_CAP_STEPS):
+        middle = 0.5 * (low + high)
+        found = braked(middle)
+        if found is None:
+            high = middle
+        else:
+            low, best = middle, found
+    return best
 
 
 def _too_fast(v: list[float], cap: list[float]) -> list[int]:

@@ -376,6 +376,33 @@ def test_a_start_too_fast_for_a_staircase_merges_only_up_to_the_first_point_it_m
     assert checker.worst_of([segment]) == [None]
 
 
+def test_a_cold_replan_too_fast_for_a_tip_ends_its_braking_on_the_flank():
+    # A re-plan of cusps 2 (delta 0.1 um) at 150 % on a fresh path, from a state at 67 mm/s
+    # 5 mm before a tip of 0.9 mm/s: no segment to an earlier point keeps under the limit, and
+    # the one to the tip had to brake at once to the tip's feed and hold it over the flank:
+    # 1.20 s to the end, where the first plan at 100 % took 0.54 s from the same row. Ended on
+    # the flank where the braking meets the limit, it takes 0.62 s.
+    curve = cf.family("cusps", range(2, 3))[0]
+    lim = replace(LIMITS, chord_error_mm=1e-4)
+    first = plan_setpoints(Path(curve, lim, T), lim, T)
+    row = 1141
+    end = braking_end_from_rows(first.feed_mm_s[row:], first.accel_mm_s2[row:], T)
+    assert end is not None
+    again = plan_setpoints(
+        Path(curve, lim, T),
+        lim.with_feed_override(1.5),
+        T,
+        start=first.state(row),
+        braking_end_mm_s=end.feed_mm_s,
+    )
+    assert (len(again) - 1) * T <= 1.2 * (len(first) - 1 - row) * T
+    fig = sc.measure(curve, *joined(first, row, again), T)
+    assert fig.max_accel_mm_s2 <= 1000.0 * 1.02
+    assert fig.max_jerk_mm_s3 <= 20000.0 * 1.05
+    assert fig.max_chord_error_mm <= 1e-4
+    assert np.array_equal(again.position_mm[-1], curve.end_point)
+
+
 def test_a_start_braking_in_one_segment_brakes_deeper_where_the_limit_falls_faster():
     # A re-plan of loops 1 at 150 % from a state accelerating towards a tip of 14.3 mm/s,
     # brought to zero acceleration at 51 mm/s 2.8 mm before it: braking in one segment down to
