@@ -385,11 +385,12 @@ class SetpointFeed:
     def _settled_onto_rows(self) -> bool:
         """Whether the setpoint is where the job's rows start; else it moves there one step.
 
-        A stop comes to rest between two rows, on the chord between them (within the chord
-        error of the curve), and a resume's rows start on the curve: up to the chord error
-        away. Taken at once, that step is a jerk of up to chord error / T³ (15,600 mm/s³ for
-        1 µm at 4 ms). So the setpoint first moves onto the curve at rest, along a septic
-        smoothstep (no step in feed, acceleration or jerk) at no more than half of jmax.
+        A stop comes to rest between two rows, on the cubic through them, a hair off the curve
+        a resume's rows start on (up to 8 nm in the operator-sequence tests; on the chords
+        braking once followed, up to the chord error). Taken at once, a step is a jerk of
+        step / T³ on top of the start's own: 15,600 mm/s³ for 1 µm at 4 ms. So the setpoint
+        first moves onto the curve at rest, along a septic smoothstep (no step in feed,
+        acceleration or jerk) at no more than half of jmax, whatever the step.
         """
         settle = self._settle
         if settle is None:
