@@ -206,38 +206,28 @@ def _flank_braking(
     the plan follows the limit down from there.
     """
     s0, s_m = w.s[0], w.s[m]
+    found: dict[float, tuple[int, float, float, Window]] = {}
 
-    def braked(v_end: float) -> tuple[int, float, float, Window] | None:
+    def braked(v_end: float) -> bool:
         s_end = s0 + ramp_distance_mm(v_start, v_end, lim.A, lim.J)
         if not s0 + MIN_POINT_GAP_MM < s_end < s_m - MIN_POINT_GAP_MM:
-            return None
+            return False
         k = max(j for j in range(m) if w.s[j] < s_end)
         if s_end - w.s[k] <= MIN_POINT_GAP_MM:
-            return None
+            return False
         trial = w.copy()
         trial.insert(k, s_end, v_end)
         trial.merge_first(k + 1, v_start)
-        v, bad = passes(trial.s, trial.cap, v_start, lim, trial.acc, trial.pinned)
-        if bad is not None or _too_fast(v, trial.cap):
-            return None
-        plan = segment_plan(trial, 0, v, lim)
-        if plan is None or checker.worst_of([_checked(trial, 0, v, plan)]) != [None]:
-            return None
-        return k, s_end, v_end, trial
+        v = _reached(trial, v_start, lim)
+        if v is None or not _first_holds(trial, v, checker, lim):
+            return False
+        found[v_end] = (k, s_end, v_end, trial)
+        return True
 
     low = _floor(s0, s_m, checker)
-    best = braked(low)
-    if best is None:
+    if not braked(low):
         return None
-    high = v_start
-    for _ in range(BRAKING_CAP_STEPS):
-        middle = 0.5 * (low + high)
-        found = braked(middle)
-        if found is None:
-            high = middle
-        else:
-            low, best = middle, found
-    return best
+    return found[_highest_holding(low, v_start, braked)]
 
 
 def _too_fast(v: list[float], cap: list[float]) -> list[int]:
@@ -266,22 +256,38 @@ def _braking_cap(
     trial = w.copy()
     trial.merge_first(m, v_start)
     # The scan does not see the peak cap: one scan serves every cap tried.
-    v, bad = passes(trial.s, trial.cap, v_start, lim, trial.acc, trial.pinned)
-    if bad is not None or _too_fast(v, trial.cap):
+    v = _reached(trial, v_start, lim)
+    if v is None:
         return None
 
     def holds(peak_cap: float) -> bool:
         trial.peak_cap[0] = peak_cap
-        plan = segment_plan(trial, 0, v, lim)
-        if plan is None:
-            return False
-        return checker.worst_of([_checked(trial, 0, v, plan)]) == [None]
+        return _first_holds(trial, v, checker, lim)
 
     if holds(v_start):
         return v_start
-    low, high = _floor(w.s[0], w.s[m], checker), v_start
+    low = _floor(w.s[0], w.s[m], checker)
     if not holds(low):
         return None
+    return _highest_holding(low, v_start, holds)
+
+
+def _reached(w: Window, v_start: float, lim: PlanLimits) -> list[float] | None:
+    """The scan's speeds from ``v_start``, or None where it cannot reach every point at or
+    under its cap."""
+    v, bad = passes(w.s, w.cap, v_start, lim, w.acc, w.pinned)
+    return None if bad is not None or _too_fast(v, w.cap) else v
+
+
+def _first_holds(w: Window, v: list[float], checker: Checker, lim: PlanLimits) -> bool:
+    """Whether the window's first segment, as planned with speeds ``v``, keeps under the limit."""
+    plan = segment_plan(w, 0, v, lim)
+    return plan is not None and checker.worst_of([_checked(w, 0, v, plan)]) == [None]
+
+
+def _highest_holding(low: float, high: float, holds: Callable[[float], bool]) -> float:
+    """The highest value in [low, high] that ``holds`` (true at ``low``), to a 2^-
+    ``BRAKING_CAP_STEPS`` of the range by bisection."""
     for _ in range(BRAKING_CAP_STEPS):
         middle = 0.5 * (low + high)
         low, high = (middle, high) if holds(middle) else (low, middle)
