@@ -424,15 +424,12 @@ class SetpointFeed:
         now = self.current
         if now.segment < 0 or self._available_end() < 2:
             return None
-        ring = self._rings[self._ring]
-        first, second = ring.slot(0), ring.slot(1)
-        if int(ring.segment[first]) != now.segment or int(ring.segment[second]) != now.segment:
+        if self._row_segment(0) != now.segment or self._row_segment(1) != now.segment:
             return None
-        dimension = self._dimension
-        p0, s0 = ring.position_mm[first, :dimension], float(ring.s_mm[first])
+        p0, s0 = self._row_point(0)
         if s0 <= now.s_mm:
             return p0.copy()
-        p1, s1 = ring.position_mm[second, :dimension], float(ring.s_mm[second])
+        p1, s1 = self._row_point(1)
         if s1 <= s0:
             return None
         return p0 - (p1 - p0) * ((s0 - now.s_mm) / (s1 - s0))
