@@ -18,6 +18,10 @@ import numpy as np
 
 from planner.profiles.cosine import cosine_state
 
+#: Results kept by each cache of the profile searches (pure functions of their floats): the
+#: look-ahead's scan repeats most of them, round after round, with the same arguments.
+CACHE_SIZE = 1 << 14
+
 
 @dataclass(frozen=True)
 class Phase:

@@ -22,9 +22,10 @@ acceleration are :mod:`planner.profiles.transition`).
 
 from __future__ import annotations
 
+import functools
 import math
 
-from planner.profiles import Phase
+from planner.profiles import CACHE_SIZE, Phase
 
 #: Iterations of the bracketed Newton search for a speed whose ramps fit a distance.
 SPEED_SEARCH_STEPS = 100
@@ -74,6 +75,7 @@ def max_ramp_speed(v_end: float, L: float, A: float, J: float) -> float:
     return v_end + dv
 
 
+@functools.lru_cache(maxsize=CACHE_SIZE)
 def min_ramp_speed(v_start: float, L: float, A: float, J: float) -> float:
     """Lowest feed a ramp down from v_start reaches within distance L (0 if it can stop).
 
@@ -86,6 +88,7 @@ def min_ramp_speed(v_start: float, L: float, A: float, J: float) -> float:
     return _fitting_speed((v_start,), L, v_start, 0.0, A, J)
 
 
+@functools.lru_cache(maxsize=CACHE_SIZE)
 def fitting_lower_speed(v_start: float, v_end: float, L: float, A: float, J: float) -> float:
     """Highest feed <= v_end that a ramp down from v_start reaches within distance L, when
     stopping fits in L but slowing to v_end does not.

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from planner.profiles import Phase
+from planner.profiles import CACHE_SIZE, Phase
 
 #: Bisection steps of the plateau searches.
 PLATEAU_SEARCH_STEPS = 60
@@ -36,8 +36,6 @@ PLATEAU_SEARCH_STEPS = 60
 PLATEAU_RTOL = 1e-8
 #: Relative speed tolerance of the searches for a highest speed.
 SPEED_RTOL = 1e-10
-#: Results kept by the caches of the pure functions below (the scan repeats most of them).
-CACHE_SIZE = 1 << 14
 #: Points per bracket in each round of the acceleration-plateau search.
 RUN_SECTIONS = 17
 
