@@ -38,7 +38,12 @@ import feed_bound as fb  # noqa: E402
 import setpoint_checks as sc  # noqa: E402
 
 from planner.nurbs import NurbsCurve  # noqa: E402
-from planner.stream import Path, plan_setpoints, stream_setpoints  # noqa: E402
+from planner.stream import (  # noqa: E402
+    Path,
+    braking_end_from_rows,
+    plan_setpoints,
+    stream_setpoints,
+)
 from planner.types import Limits, SetpointBlock  # noqa: E402
 
 try:
@@ -152,6 +157,35 @@ def replan_first_block_s(curve: NurbsCurve, ratio: float = 1.2) -> float:
     return best
 
 
+def replan_first_blocks_ms(curves: list[NurbsCurve], lim: Limits, step: int = 40) -> list[float]:
+    """CPU times (ms) from re-plan calls at rows of each curve's plan to their first blocks,
+    in order along the path, as a feed override knob turned now and then would ask for them
+    (each re-plan starts warm from the points the plans before it found). Rows that brake to
+    a rest are left out: the planner process re-plans from that rest (a plan of its own)."""
+    times_ms = []
+    for curve in curves:
+        path = Path(curve, lim, T)
+        plan = plan_setpoints(path, lim, T)
+        for row in range(1, len(plan) - 1, step):
+            end = braking_end_from_rows(plan.feed_mm_s[row:], plan.accel_mm_s2[row:], T)
+            if end is not None and end.feed_mm_s == 0.0:
+                continue
+            for ratio in (0.8, 1.2):
+                started = time.process_time()
+                next(
+                    stream_setpoints(
+                        path,
+                        lim.with_feed_override(ratio),
+                        T,
+                        start=plan.state(row),
+                        braking_end_mm_s=None if end is None else end.feed_mm_s,
+                        block_periods=64,
+                    )
+                )
+                times_ms.append((time.process_time() - started) * 1e3)
+    return times_ms
+
+
 def main() -> None:
     curve = paper_curve()
     print("Motion time against the acceleration-limited bound and the jerk-limited reference")
@@ -162,9 +196,10 @@ def main() -> None:
     )
     for delta in (1e-4, 5e-4, 1e-3):
         optimality_row("paper", curve, delta)
-    for family in ("cusps", "loops", "free"):
-        for seed, c in zip(FAMILY_SEEDS, cf.family(family, FAMILY_SEEDS), strict=True):
-            optimality_row(f"{family} {seed}", c, 1e-3)
+    for delta in (1e-3, 1e-4):
+        for family in ("cusps", "loops", "free"):
+            for seed, c in zip(FAMILY_SEEDS, cf.family(family, FAMILY_SEEDS), strict=True):
+                optimality_row(f"{family} {seed}", c, delta)
     print()
     print("First block: CPU time from Path() to the first block, peak traced memory over it")
     print(f"{'spans':>8s} {'curve build s':>14s} {'first block s':>14s} {'peak MB':>8s}")
@@ -203,6 +238,22 @@ def main() -> None:
     )
     for name, c in (("paper", curve), ("random smooth, 2000 spans", random_curve(2000))):
         print(f"{name:28s} {replan_first_block_s(c) * 1e3:7.2f} ms")
+    print()
+    print(
+        "Re-plans from every 40th row of two curves per family (override 80 and 120 %, after "
+        "the re-plans before): CPU time to the first block, ms"
+    )
+    print(
+        f"{'family':8s} {'delta':>5s} {'plans':>6s} {'p50':>6s} {'p90':>6s} {'p99':>6s} {'max':>6s}"
+    )
+    for delta in (1e-3, 1e-4):
+        for family in ("cusps", "loops", "free"):
+            times_ms = replan_first_blocks_ms(cf.family(family, range(2)), limits(delta))
+            p50, p90, p99 = np.percentile(times_ms, [50, 90, 99])
+            print(
+                f"{family:8s} {delta * 1e3:5.1f} {len(times_ms):6d} {p50:6.2f} {p90:6.2f} "
+                f"{p99:6.2f} {max(times_ms):6.2f}"
+            )
     print()
     print("Feed fluctuation |realised/planned - 1| on the paper curve, delta 1 um")
     print(

@@ -16,7 +16,10 @@ only the part that a longer look-ahead could no longer change is released (its s
 those planned with no stop at the window end); the window then moves on (a rest of the path
 shorter than half a window joins the window before it). Only the window's points and the
 envelope and arc-length chunks it reaches are built, so the first stretch comes as fast on a
-curve of 100,000 knot spans as on a short one.
+curve of 100,000 knot spans as on a short one. A window whose refinement needs more points than
+:data:`planner.refine.MAX_WINDOW_POINTS` (tight loops and cusps at a chord error of 0.1 µm) is
+planned shorter rather than flattened under its lowest limits, and the windows after it are
+sized to the points it held.
 
 Units: s in mm, feeds mm/s, A mm/s², J mm/s³, T s. Pure computation; one generator per stream,
 not thread-safe.
@@ -30,6 +33,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
+
+import numpy as np
 
 from planner.arclength import ArcLengthTable
 from planner.checker import Checker
@@ -45,7 +50,7 @@ from planner.profiles.scurve import (
     settled_speed,
 )
 from planner.profiles.transition import transition_phases
-from planner.refine import refine
+from planner.refine import MAX_WINDOW_POINTS, refine
 from planner.warmstart import RefinedPoints
 from planner.window import (
     MIN_POINT_GAP_MM,
@@ -74,6 +79,9 @@ WINDOW_BRAKING_DISTANCES, MIN_WINDOW_MM = 24.0, 1.0
 #: to the period, loops 0 and 3 take 5 and 3 periods more (+0.6 %, +0.3 %), free 3 one less;
 #: the paper's curve keeps its own.
 FIRST_WINDOW_PERIODS, FIRST_WINDOW_BRAKING_DISTANCES = 65, 2.0
+#: Times a window too crowded to refine is planned shorter before a release, at most; then it
+#: is flattened under its lowest limits (as when the refinement rounds run out).
+MAX_SHORTENINGS = 6
 #: A rest of the path shorter than this fraction of a window joins the window before it.
 TAIL_WINDOW_FRACTION = 0.5
 
@@ -96,6 +104,38 @@ def _released(
         out.pop()
         k -= 1
     return out, k
+
+
+def _first_window_on_limit_mm(
+    envelope: FeedEnvelope, s: float, v: float, longest_mm: float, lim: PlanLimits
+) -> float:
+    """A re-plan's first window, up to ``longest_mm`` (timed at vmax): as long as
+    :data:`FIRST_WINDOW_PERIODS` at the feed limit ahead take, plus
+    :data:`FIRST_WINDOW_BRAKING_DISTANCES` from the highest feed on the way.
+
+    The feed is at most the limit (or the start feed, above a lowered override's vmax): the
+    rows of a first block never get farther. Timed on the limit's samples with 2 h / (v0 + v1),
+    never longer than along the limit interpolated between them, so the window rather comes
+    out long. Where the limit is low (tight loops, a small chord error) the window is that much
+    shorter, and so is the refinement an override change waits for. Plans from rest keep the
+    window timed at vmax: where windows end moves what refinement finds (on two of the bench's
+    loop curves this one took 2 and 4 periods longer).
+    """
+    s_env, v_env = envelope.query(s, s + longest_mm)
+    feed = np.minimum(v_env, max(v, lim.vmax_mm_s))
+    with np.errstate(divide="ignore"):
+        t_s = np.concatenate([[0.0], np.cumsum(2.0 * np.diff(s_env) / (feed[:-1] + feed[1:]))])
+    t_start_s = float(np.interp(s, s_env, t_s))  # the first sample lies at or before s
+    covered = int(np.searchsorted(t_s, t_start_s + FIRST_WINDOW_PERIODS * lim.T, side="right"))
+    if covered >= len(s_env):
+        return longest_mm  # (at least MIN_WINDOW_MM)
+    v_high = max(v, float(feed[: covered + 1].max()))
+    window_mm = (
+        s_env[covered]
+        - s
+        + FIRST_WINDOW_BRAKING_DISTANCES * braking_distance_mm(v_high, lim.A, lim.J)
+    )
+    return max(min(longest_mm, window_mm), MIN_WINDOW_MM)
 
 
 def _cruise_cut(w: Window, k: int, v: list[float], lim: PlanLimits) -> SegmentPlan | None:
@@ -175,11 +215,20 @@ def plan_segments(
     first_window_mm = FIRST_WINDOW_PERIODS * lim.T * v_top + (
         FIRST_WINDOW_BRAKING_DISTANCES * braking_distance_mm(v_top, A, J)
     )
-    window_mm = max(min(full_window_mm, first_window_mm), MIN_WINDOW_MM)
+    first_window_mm = max(min(full_window_mm, first_window_mm), MIN_WINDOW_MM)
+    window_mm = first_window_mm
+    if warm_start:
+        window_mm = _first_window_on_limit_mm(envelope, s, v, first_window_mm, lim)
     # A hair beyond the braking distance, so that round-off never makes the stop look infeasible.
     brake_mm = braking_distance_mm(v, A, J) * (1.0 + 1e-9) + 1e-9
     stop_at = arc.extent_mm(s + brake_mm) if stop else math.inf
     extra = 0.0
+    crowded = False  # a window was planned shorter for its points (MAX_WINDOW_POINTS)
+    # Since the last release: the longest window that released nothing, the shortest one too
+    # crowded to refine, and how many were.
+    barren_mm, crowded_mm, shortenings = 0.0, math.inf, 0
+    released_s = 0.0  # motion time released so far
+    crowded_points = RefinedPoints()  # what refining such a window found: seeds for the next
     rest_mm = None  # where the plan that released s comes to rest (the last window's end)
     while True:
         # The curve's end, once it is within reach of this window (the table grows to there).
@@ -195,7 +244,7 @@ def plan_segments(
             break
         target = min(stop_at, curve_end)
         s_end = s + window_mm + extra
-        if target - s_end < TAIL_WINDOW_FRACTION * window_mm:
+        if target - s_end < TAIL_WINDOW_FRACTION * window_mm and target - s < crowded_mm:
             s_end = target  # one window to the end rather than a short one after it
         s_end = min(s_end, target)
         final = s_end >= target
@@ -211,8 +260,23 @@ def plan_segments(
         initial_s = frozenset(w.s)
         if refined is not None and warm_start:
             refined.seed(w, lim.vmax_mm_s)
+        crowded_points.seed(w, lim.vmax_mm_s)
         checker = Checker(s_env, v_env, lim)
-        v_plan = refine(w, checker, v, lim, between_rounds)
+        # A window too crowded to refine (MAX_WINDOW_POINTS) is planned shorter, halfway to
+        # the longest one that released nothing, while that is a step away: two stops from
+        # its highest feed.
+        length_mm = s_end - s
+        v_high = max(v, min(float(v_env.max()), lim.vmax_mm_s))
+        step_mm = max(
+            MIN_WINDOW_MM, FIRST_WINDOW_BRAKING_DISTANCES * braking_distance_mm(v_high, A, J)
+        )
+        shortenable = shortenings < MAX_SHORTENINGS and 0.5 * (length_mm - barren_mm) >= step_mm
+        v_plan = refine(w, checker, v, lim, between_rounds, shortenable=shortenable)
+        if v_plan is None:
+            crowded_points.remember(w, initial_s, lim.vmax_mm_s)
+            crowded, crowded_mm, shortenings = True, length_mm, shortenings + 1
+            window_mm, extra = 0.5 * (barren_mm + length_mm), 0.0
+            continue
         if refined is not None:
             refined.remember(w, initial_s, lim.vmax_mm_s)
         if final:
@@ -234,10 +298,26 @@ def plan_segments(
         if cut is not None:
             segments.append(cut)
         if not segments:
-            extra = 2.0 * (extra + window_mm)
+            barren_mm = length_mm
+            if math.isfinite(crowded_mm) and crowded_mm - length_mm >= 2.0 * step_mm:
+                extra = 0.5 * (length_mm + crowded_mm) - window_mm
+            else:
+                crowded_mm = math.inf  # none, or no room below the crowded one: grow past it
+                extra = 2.0 * (extra + window_mm)
             continue
-        extra = 0.0
-        window_mm = full_window_mm
+        extra, barren_mm, crowded_mm, shortenings = 0.0, 0.0, math.inf, 0
+        released_s += sum(phase.duration_s for segment in segments for phase in segment.phases)
         yield segments
         s, v = segments[-1].s_end_mm, segments[-1].v_end_mm_s
         rest_mm = s_end
+        if warm_start and released_s < FIRST_WINDOW_PERIODS * lim.T:
+            # Still short of a first block: the next window is timed on the limit too.
+            window_mm = _first_window_on_limit_mm(envelope, s, v, first_window_mm, lim)
+        elif crowded:
+            # The path ahead of a crowded stretch is likely as crowded: the next window is as
+            # long as half the points this one had room for would take.
+            density_per_mm = len(w.s) / (w.s[-1] - w.s[0])
+            window_mm = min(full_window_mm, 0.5 * MAX_WINDOW_POINTS / density_per_mm)
+            crowded = window_mm < full_window_mm
+        else:
+            window_mm = full_window_mm

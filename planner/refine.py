@@ -41,7 +41,10 @@ from planner.window import (
 )
 
 #: Refinement rounds, and sensitive points, of one window before the failing segments are
-#: flattened under their lowest limit instead.
+#: flattened under their lowest limit instead; where the points run out, the look-ahead plans
+#: a shorter window first (:func:`planner.lookahead.plan_segments`). At a chord error of 0.1 µm
+#: the bench's loop curves need 300-1,200 points in a window timed at vmax: flattened, they
+#: took 1.071-1.075 of the jerk-limited reference, planned shorter 1.023-1.025.
 MAX_REFINEMENTS, MAX_WINDOW_POINTS = 30, 300
 #: A point pinned on the feed limit sits this fraction below it (room for the segments on
 #: either side, which match the limit's value and slope there but not its curvature). Measured
@@ -65,8 +68,13 @@ def refine(
     v_start: float,
     lim: PlanLimits,
     between_rounds: Callable[[], None] | None = None,
-) -> list[float]:
+    *,
+    shortenable: bool = False,
+) -> list[float] | None:
     """Refine the window until every segment keeps under the feed limit; returns the speeds.
+
+    With ``shortenable``, a window that needs more than :data:`MAX_WINDOW_POINTS` returns
+    None instead of being flattened: the caller plans a shorter one.
 
     Each round checks every segment (last to first, so that splits do not shift the rest) and
     repairs the failing ones; should the rounds run out, every cosine segment becomes an S-curve
@@ -88,11 +96,11 @@ def refine(
     which the tip could not be met, and the braking segment ran over the limit, 1.35 delta and
     1.56 J on the setpoints, then held the tip's feed to the window's end.)
     """
-    v, holds = _refined(w, checker, v_start, lim, between_rounds)
-    if not holds and w.rest_inside:
+    refined = _refined(w, checker, v_start, lim, between_rounds, shortenable)
+    if refined is not None and not refined[1] and w.rest_inside:
         w.rest_first()
-        v, _ = _refined(w, checker, v_start, lim, between_rounds)
-    return v
+        refined = _refined(w, checker, v_start, lim, between_rounds, shortenable)
+    return None if refined is None else refined[0]
 
 
 def _refined(
@@ -101,8 +109,10 @@ def _refined(
     v_start: float,
     lim: PlanLimits,
     between_rounds: Callable[[], None] | None,
-) -> tuple[list[float], bool]:
-    """The rounds of :func:`refine`: the speeds, and whether every segment holds."""
+    shortenable: bool,
+) -> tuple[list[float], bool] | None:
+    """The rounds of :func:`refine`: the speeds, and whether every segment holds (None: the
+    window is ``shortenable`` and needs more points than it may hold)."""
     verdicts: dict[tuple, tuple[float, float, float] | None] = {}
     v = w.speeds(v_start, lim)
     for flatten in (False, True):
@@ -112,6 +122,8 @@ def _refined(
                 w.unpin(i)
             v = w.speeds(v_start, lim)
         for _ in range(MAX_REFINEMENTS):
+            if shortenable and not flatten and len(w.s) > MAX_WINDOW_POINTS:
+                return None  # crowded (before any round too: a warm start may seed that many)
             if brake_first(w, v, checker, lim):
                 v = w.speeds(v_start, lim)
             failing = _failing(w, v, checker, lim, verdicts)
@@ -126,7 +138,7 @@ def _refined(
             v = w.speeds(v_start, lim)
             if between_rounds is not None:
                 between_rounds()
-            if not changed or (not flatten and len(w.s) > MAX_WINDOW_POINTS):
+            if not changed or (not flatten and not shortenable and len(w.s) > MAX_WINDOW_POINTS):
                 break
     return v, False
 

@@ -14,6 +14,7 @@ import setpoint_checks as sc
 import yaml
 
 from planner import lookahead
+from planner import refine as refine_module
 from planner.checker import Checker
 from planner.envelope import CHORD_MARGIN, FeedEnvelope
 from planner.errors import StartTooFast
@@ -534,9 +535,9 @@ def test_first_block_of_a_long_curve_is_fast():
 def test_a_first_block_waits_for_one_short_window(monkeypatch):
     window_ends = []
 
-    def recording_refine(w, checker, v_start, lim, between_rounds=None):
+    def recording_refine(w, checker, v_start, lim, between_rounds=None, **options):
         window_ends.append(w.s[-1])
-        return refine(w, checker, v_start, lim, between_rounds)
+        return refine(w, checker, v_start, lim, between_rounds, **options)
 
     monkeypatch.setattr(lookahead, "refine", recording_refine)
     path = Path(long_curve(2000), LIMITS, T)
@@ -564,14 +565,90 @@ def test_a_cruise_is_released_up_to_where_the_window_end_would_brake():
     assert released[-1].s_end_mm == pytest.approx(window_mm - braking_mm, abs=1e-6)
 
 
+def test_a_window_too_crowded_to_refine_is_planned_shorter_not_flattened(monkeypatch):
+    # With room for 40 points, the second window of a loop curve needs more. Flattened under
+    # its lowest limits, as the rounds running out would have it, the motion took 859 periods
+    # against 806; planned shorter, it takes the same as with room for all.
+    curve = cf.loop_curve(0)
+    roomy = plan_setpoints(Path(curve, LIMITS, T), LIMITS, T)
+    monkeypatch.setattr(refine_module, "MAX_WINDOW_POINTS", 40)
+    monkeypatch.setattr(lookahead, "MAX_WINDOW_POINTS", 40)
+    outcomes = []
+
+    def recording_refine(w, checker, v_start, lim, between_rounds=None, **options):
+        v = refine(w, checker, v_start, lim, between_rounds, **options)
+        outcomes.append((v is None, len(w.s)))
+        return v
+
+    monkeypatch.setattr(lookahead, "refine", recording_refine)
+    block = plan_setpoints(Path(curve, LIMITS, T), LIMITS, T)
+    assert any(crowded for crowded, _ in outcomes)
+    assert all(points <= 40 for crowded, points in outcomes if not crowded)
+    assert len(block) <= len(roomy) * 1.01
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_accel_mm_s2 <= 1.02 * LIMITS.amax_mm_s2
+    assert fig.max_jerk_mm_s3 <= 1.05 * LIMITS.jmax_mm_s3
+    assert fig.max_chord_error_mm <= LIMITS.chord_error_mm
+    assert fig.end_error_mm < 1e-9
+
+
+@pytest.mark.parametrize(("family", "seed", "room"), [("free", 0, 100), ("loops", 7, 30)])
+def test_a_crowded_window_next_to_the_curve_end_ends_its_plan(monkeypatch, family, seed, room):
+    # A first window released nothing, the next one reached to the curve's end and was too
+    # crowded. Planned shorter, halfway back to the first, it was stretched to the end again (a
+    # rest of the path shorter than half a window joins it): too crowded again, without end.
+    monkeypatch.setattr(refine_module, "MAX_WINDOW_POINTS", room)
+    monkeypatch.setattr(lookahead, "MAX_WINDOW_POINTS", room)
+    windows = []
+
+    def counting_refine(*args, **options):
+        windows.append(1)
+        if len(windows) > 1000:
+            raise AssertionError("the windows never end")
+        return refine(*args, **options)
+
+    monkeypatch.setattr(lookahead, "refine", counting_refine)
+    limits = replace(LIMITS, chord_error_mm=1e-4)
+    curve = cf.family(family, [seed])[0]
+    block = plan_setpoints(Path(curve, limits, T), limits, T)
+    fig = sc.measure(curve, block.u, block.position_mm, T)
+    assert fig.max_accel_mm_s2 <= 1.02 * limits.amax_mm_s2
+    assert fig.max_jerk_mm_s3 <= 1.05 * limits.jmax_mm_s3
+    assert fig.max_chord_error_mm <= limits.chord_error_mm
+    assert fig.end_error_mm < 1e-9
+
+
+def test_a_replan_times_its_first_window_on_the_feed_limit(monkeypatch):
+    # On a loop curve the limit keeps the feed near 60 mm/s: 65 periods there cover about
+    # 16 mm, not the 26 mm they would at vmax, and the first block still waits for one window.
+    curve = cf.loop_curve(1)
+    path = Path(curve, LIMITS, T)
+    start = plan_setpoints(path, LIMITS, T).state(300)
+    windows = []
+
+    def recording_refine(w, checker, v_start, lim, between_rounds=None, **options):
+        windows.append(w.s[-1] - w.s[0])
+        return refine(w, checker, v_start, lim, between_rounds, **options)
+
+    monkeypatch.setattr(lookahead, "refine", recording_refine)
+    faster = LIMITS.with_feed_override(1.2)
+    block = next(stream_setpoints(path, faster, T, start=start, block_periods=64))
+    vmax_timed_mm = lookahead.FIRST_WINDOW_PERIODS * T * faster.vmax_mm_s + (
+        lookahead.FIRST_WINDOW_BRAKING_DISTANCES
+        * braking_distance_mm(faster.vmax_mm_s, faster.amax_mm_s2, faster.jmax_mm_s3)
+    )
+    assert len(block) == 64 and len(windows) == 1
+    assert windows[0] < 0.7 * vmax_timed_mm
+
+
 def test_a_first_block_from_above_vmax_waits_for_one_window(monkeypatch):
     # A feed override lowered to 30 %: the first window holds the braking from 100 mm/s and
     # enough of the new feed for a block.
     windows = []
 
-    def recording_refine(w, checker, v_start, lim, between_rounds=None):
+    def recording_refine(w, checker, v_start, lim, between_rounds=None, **options):
         windows.append((w.s[0], w.s[-1]))
-        return refine(w, checker, v_start, lim, between_rounds)
+        return refine(w, checker, v_start, lim, between_rounds, **options)
 
     monkeypatch.setattr(lookahead, "refine", recording_refine)
     line = NurbsCurve.from_arrays(1, [[0.0, 0.0], [1000.0, 0.0]], [0, 0, 1, 1])

@@ -438,7 +438,7 @@ def override_as_a_block_is_planned_ahead(h: Harness, monkeypatch: pytest.MonkeyP
                     self._job is not None and self._job.offer is not None
                 )
 
-    def refine_with_a_command(*args: object, **kwargs: object) -> list[float]:
+    def refine_with_a_command(*args: object, **kwargs: object) -> list[float] | None:
         if extending and not offered_during_the_block:
             h.post(CommandCode.SET_OVERRIDE, override_percent=60.0)
             h.period(plan=False)
