@@ -16,7 +16,7 @@ import yaml
 from planner import lookahead
 from planner import refine as refine_module
 from planner.checker import Checker
-from planner.envelope import CHORD_MARGIN, FeedEnvelope
+from planner.envelope import CHORD_MARGIN, FeedEnvelope, hermite_peaks
 from planner.errors import StartTooFast
 from planner.interpolator import Interpolator
 from planner.nurbs import NurbsCurve
@@ -474,6 +474,18 @@ def test_a_pin_the_scan_cannot_honour_at_its_flat_cap_keeps_it_with_less_acceler
     w.pinned[1], w.acc[1] = True, -100.0
     v = w.speeds(12.0, lim)
     assert w.pinned[1] and w.acc[1] == -25.0 and v[1] == 12.0
+
+
+def test_a_peak_between_two_samples_that_both_rise_is_found():
+    # Curvatures on [0, 1]: k(u) = u - 3 u^2 + 2.5 u^3 rises at both ends (slopes 1 and 2.5),
+    # peaks at u = 0.24 and dips at u = 0.56; k = u^3 + u rises without a peak; k = u - u^2
+    # rises, then falls (the case the signs of the slopes alone find).
+    du = np.ones(3)
+    k0 = np.zeros(3)
+    k1 = np.array([0.5, 2.0, 0.0])
+    slope0 = np.array([1.0, 1.0, 1.0])
+    slope1 = np.array([2.5, 4.0, -1.0])
+    assert hermite_peaks(du, k0, k1, slope0, slope1).tolist() == [True, False, True]
 
 
 def test_envelope_dilation_is_exact_between_samples(path):
