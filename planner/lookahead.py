@@ -9,7 +9,8 @@ The stages, one module each:
 - :mod:`planner.refine`: repairs until every segment keeps under the limit;
 - here: the windows. Look-ahead distance: at least the S-curve braking distance from vmax
   (7.5 mm with the paper's limits), extended as long as the plan is not final. The first window
-  is only as long as a first block needs (:data:`FIRST_WINDOW_PERIODS`).
+  is only as long as a first block needs (:data:`FIRST_WINDOW_PERIODS`; a re-plan's is timed on
+  the feed limit ahead, shorter where that is low).
 
 Streaming with bounded memory: a window of the path is planned assuming a stop at its end, and
 only the part that a longer look-ahead could no longer change is released (its speeds equal
