@@ -88,6 +88,10 @@ LIMIT_TIMED_WINDOW_FRACTION = 0.75
 #: Times a window too crowded to refine is planned shorter before a release, at most; then it
 #: is flattened under its lowest limits (as when the refinement rounds run out).
 MAX_SHORTENINGS = 6
+#: A crowded window is shortened only while that moves its length by at least this many stops
+#: from its highest feed (halfway towards the longest window that released nothing); a longer
+#: window that released nothing is grown by the same rule towards the crowded one.
+CROWDED_STEP_BRAKING_DISTANCES = 2.0
 #: A rest of the path shorter than this fraction of a window joins the window before it.
 TAIL_WINDOW_FRACTION = 0.5
 
@@ -271,12 +275,11 @@ def plan_segments(
         crowded_points.seed(w, lim.vmax_mm_s)
         checker = Checker(s_env, v_env, lim)
         # A window too crowded to refine (MAX_WINDOW_POINTS) is planned shorter, halfway to
-        # the longest one that released nothing, while that is a step away: two stops from
-        # its highest feed.
+        # the longest one that released nothing, while that is a step away.
         length_mm = s_end - s
         v_high = max(v, min(float(v_env.max()), lim.vmax_mm_s))
         step_mm = max(
-            MIN_WINDOW_MM, FIRST_WINDOW_BRAKING_DISTANCES * braking_distance_mm(v_high, A, J)
+            MIN_WINDOW_MM, CROWDED_STEP_BRAKING_DISTANCES * braking_distance_mm(v_high, A, J)
         )
         shortenable = shortenings < MAX_SHORTENINGS and 0.5 * (length_mm - barren_mm) >= step_mm
         v_plan = refine(w, checker, v, lim, between_rounds, shortenable=shortenable)
