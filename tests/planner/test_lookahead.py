@@ -33,6 +33,7 @@ from planner.types import Limits, MotionState, SetpointBlock
 from planner.window import (
     PlanLimits,
     SegmentPlans,
+    SpeedScan,
     Window,
     passes,
     segment_plan,
@@ -463,6 +464,40 @@ def test_of_two_pins_too_far_apart_in_feed_the_faster_one_gives_way(rising):
         pinned=[False, True, True, False],
     )
     assert bad == (2 if rising else 1)
+
+
+def test_a_scan_after_one_point_changed_gives_the_speeds_of_a_full_scan():
+    # Window.speeds lowers the pins it cannot honour one at a time and scans again only as far
+    # as each change reaches: pins along a wavy limit, changed one at a time at random (the
+    # failing one where there is one), scan for scan as a fresh full scan.
+    rng = np.random.default_rng(7)
+    lim = PlanLimits(vmax_mm_s=100.0, A=1000.0, J=20000.0, T=T)
+    s = [0.0, *np.cumsum(rng.uniform(0.05, 0.4, 120)).tolist()]
+    limit = [30.0 + 20.0 * np.sin(x) for x in s]
+    cap = [0.0, *limit[1:-1], 0.0]
+    acc = [0.0, *[v * 20.0 * np.cos(x) for v, x in zip(limit[1:-1], s[1:-1], strict=True)], 0.0]
+    pinned = [False, *(rng.random(len(s) - 2) < 0.6).tolist(), False]
+    acc = [a if pin else 0.0 for a, pin in zip(acc, pinned, strict=True)]
+    scan = SpeedScan(s, cap, 20.0, lim, acc, pinned)
+    bad = scan.scan()
+    outcomes = set()
+    for _ in range(400):
+        k = bad if bad is not None else int(rng.integers(1, len(s)))
+        change = rng.integers(3)
+        if change == 0:
+            cap[k] *= 0.9
+            acc[k] *= 0.9
+        elif change == 1:
+            acc[k] *= 0.5
+        else:
+            pinned[k], acc[k] = False, 0.0
+        bad = scan.scan(k)
+        fresh = SpeedScan(s, list(cap), 20.0, lim, list(acc), list(pinned))
+        assert fresh.scan() == bad
+        if bad is None:
+            assert fresh.v == scan.v
+        outcomes.add(bad is None)
+    assert outcomes == {True, False}
 
 
 def test_a_pin_the_scan_cannot_honour_at_its_flat_cap_keeps_it_with_less_acceleration():
