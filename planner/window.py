@@ -52,6 +52,9 @@ RAMP_FIT_RTOL = 1e-9
 PIN_RETRIES = 3
 #: Points closer than this are not inserted, mm.
 MIN_POINT_GAP_MM = 1e-7
+#: A segment's feed cap at least this fraction above the highest feed it can reach binds
+#: nothing (room for round-off, :func:`segment_cap`).
+REACH_MARGIN = 1e-6
 
 
 @dataclass(frozen=True)
@@ -81,26 +84,29 @@ _Plans = dict[tuple, "tuple[tuple[Phase, ...], float] | None"]
 class SegmentPlans:
     """Planned phases of segment shapes, shared by the windows of a path's plans.
 
-    A shape's plan depends on its key (:meth:`Window.key`) and the plan's limits alone, so the
-    windows of every plan of one path with the same limits share one table. Consecutive windows
-    overlap, and a re-plan from a motion state (a feed override, a resume) meets again most
-    shapes that earlier plans of the stretch met: on the bench's re-plans the median first
-    block of a cusped curve drops from 3.8 to 3.4 ms and of a curve with loops from 8.4 to
-    7.4 ms. Bounded: the tables are emptied when they hold ``max_shapes`` shapes together.
+    A shape's plan depends on its key (:meth:`Window.key`, which holds the feed cap the
+    segment plans under) and the plan's A and J alone, so the windows of every plan of one path
+    with the same A and J share one table, whatever their feed override: where the override's
+    vmax is above what a segment can reach, its cap is that reach (:func:`segment_cap`).
+    Consecutive windows overlap, and a re-plan from a motion state (a feed override, a resume)
+    meets again most shapes that earlier plans of the stretch met: on the bench's re-plans the
+    median first block of a cusped curve drops from 3.8 to 3.4 ms and of a curve with loops
+    from 8.4 to 7.4 ms. Bounded: the tables are emptied when they hold ``max_shapes`` shapes
+    together.
     """
 
     def __init__(self, max_shapes: int = 8192) -> None:
         self.max_shapes = max_shapes
-        self._by_limits: dict[PlanLimits, _Plans] = {}
+        self._by_limits: dict[tuple[float, float], _Plans] = {}
 
     def __len__(self) -> int:
         return sum(len(plans) for plans in self._by_limits.values())
 
     def for_limits(self, lim: PlanLimits) -> _Plans:
-        """The table of plans with limits ``lim`` (for the next window)."""
+        """The table of plans with the A and J of ``lim`` (for the next window)."""
         if len(self) >= self.max_shapes:
             self._by_limits.clear()
-        return self._by_limits.setdefault(lim, {})
+        return self._by_limits.setdefault((lim.A, lim.J), {})
 
 
 class Window:
@@ -137,8 +143,9 @@ class Window:
         # or, given ``plans`` (:meth:`SegmentPlans.for_limits`), in any with the same limits.
         self.plans: _Plans = {} if plans is None else plans
 
-    def key(self, k: int, v: list[float]) -> tuple:
-        """What segment k's plan depends on: its ends, end states, peak cap and profile kind."""
+    def key(self, k: int, v: list[float], lim: PlanLimits) -> tuple:
+        """What segment k's plan depends on besides A and J: its ends, end states, feed cap
+        (:func:`segment_cap`) and profile kind."""
         return (
             self.s[k],
             self.s[k + 1],
@@ -146,7 +153,7 @@ class Window:
             v[k + 1],
             self.acc[k],
             self.acc[k + 1],
-            self.peak_cap[k],
+            segment_cap(self, self.s, k, v, lim),
             self.cosine[k],
         )
 
@@ -430,9 +437,9 @@ def _shape(
     w: Window, s: list[float], k: int, v: list[float], acc: list[float], lim: PlanLimits
 ) -> tuple[tuple[Phase, ...], float] | None:
     """Phases and top feed of a segment with an end of non-zero acceleration (cached)."""
-    key = (s[k], s[k + 1], v[k], v[k + 1], acc[k], acc[k + 1], w.peak_cap[k], 2)
+    v_cap = segment_cap(w, s, k, v, lim)
+    key = (s[k], s[k + 1], v[k], v[k + 1], acc[k], acc[k + 1], v_cap, 2)
     if key not in w.plans:
-        v_cap = min(lim.vmax_mm_s, w.peak_cap[k])
         phases = segment_phases_between(
             v[k], acc[k], v[k + 1], acc[k + 1], s[k + 1] - s[k], v_cap, lim.A, lim.J
         )
@@ -442,6 +449,18 @@ def _shape(
         fits = low >= 0.0 and top <= max(v_cap, v[k], v[k + 1]) * (1.0 + RAMP_FIT_RTOL)
         w.plans[key] = (tuple(phases), top) if fits else None
     return w.plans[key]
+
+
+def segment_cap(w: Window, s: list[float], k: int, v: list[float], lim: PlanLimits) -> float:
+    """The feed cap segment k plans under: the lowest of vmax, its peak cap and the highest
+    feed any motion between its ends can reach (with |a| <= A, v² <= A L + (v0² + v1²) / 2;
+    not below the faster end, which an infeasible segment keeps as before).
+
+    A cap above that reach binds nothing, so the segment's plan is the same under any feed
+    override whose vmax is above it (:class:`SegmentPlans`)."""
+    v0, v1 = v[k], v[k + 1]
+    reach = math.sqrt(lim.A * (s[k + 1] - s[k]) + 0.5 * (v0 * v0 + v1 * v1))
+    return min(lim.vmax_mm_s, w.peak_cap[k], max(reach * (1.0 + REACH_MARGIN), v0, v1))
 
 
 def _speed_range(v: float, a: float, phases: list[Phase]) -> tuple[float, float]:
@@ -468,14 +487,14 @@ def segment_plan(
     scan unpins such ends, so only a trial of a lower peak cap meets it)."""
     if w.acc[k] != 0.0 or w.acc[k + 1] != 0.0:
         return _shape(w, w.s, k, v, w.acc, lim)
-    key = w.key(k, v)
+    key = w.key(k, v, lim)
     if key not in w.plans:
         v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
         if w.cosine[k] == 1:
             t_a = cosine_time_s(v0, v1, L)  # eq. (12)
             w.plans[key] = (Phase(t_a, cosine_dv_mm_s=v1 - v0),), max(v0, v1)
         else:
-            vp = cruise_speed(v0, v1, L, min(lim.vmax_mm_s, w.peak_cap[k]), lim.A, lim.J)
+            vp = cruise_speed(v0, v1, L, key[6], lim.A, lim.J)
             w.plans[key] = tuple(segment_phases(v0, vp, v1, L, lim.A, lim.J)), max(v0, vp, v1)
     return w.plans[key]
 
