@@ -283,7 +283,7 @@ class SpeedScan:
 
     :meth:`Window.speeds` lowers the pins the scan cannot honour one by one, and a re-plan's
     window at a chord error of 0.1 µm may lower hundreds: one re-plan of a loop curve ran 370
-    full scans, 0.2 s of its 0.21 s. A change at one point reaches the backward speeds before
+    full scans, 90 % of its CPU time. A change at one point reaches the backward speeds before
     it and the forward speeds after it only as far as they change: where a speed computed again
     equals the one before, the rest of that pass is as it was (the same inputs give the same
     speeds), so the scan stops there.
