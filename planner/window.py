@@ -140,7 +140,7 @@ class Window:
         # end), if known: from the start state, a stop there keeps under the limit.
         self.rest_mm = rest_mm
         # Planned phases and top feed of each segment shape met so far (see key), in this window
-        # or, given ``plans`` (:meth:`SegmentPlans.for_limits`), in any with the same limits.
+        # or, given ``plans`` (:meth:`SegmentPlans.for_limits`), in any with the same A and J.
         self.plans: _Plans = {} if plans is None else plans
 
     def key(self, k: int, v: list[float], lim: PlanLimits) -> tuple:
