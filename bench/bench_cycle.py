@@ -20,7 +20,8 @@ first, counted beyond that rest), what the Modbus clients saw, and the CPU time 
 took meanwhile (steal time).
 
 Part 2: CPU time per period of the cycle process (from /proc) and its longest period, with 3 and
-with 8 axes, the machine enabled and running the paper's curve for ``--cpu-seconds``.
+with 8 axes, the machine enabled and running the paper's curve for ``--cpu-seconds``; each with
+the configured spin before the deadline (busy-waiting is CPU time) and without it.
 
 Run: ``.venv/bin/python bench/bench_cycle.py [--seconds 60] [--cpu-seconds 10]`` as root (or
 with CAP_SYS_NICE and CAP_IPC_LOCK). Figures depend on the kernel, the host and whatever else
@@ -376,22 +377,34 @@ def print_override_latency(report: dict) -> None:
 
 
 def part_two(seconds: float) -> None:
+    """CPU time of the cycle process per period, with the configured spin before each deadline
+    (busy-waiting, counted as CPU time) and without it (the period's work alone)."""
+    spin_us = SIM_REALTIME.spin_us
     print(f"\ncycle process CPU per period, machine enabled and moving, {seconds:g} s each")
-    print(f"{'axes':>5} {'CPU per period (µs)':>20} {'longest period (µs)':>20}")
+    print(f"{'axes':>5} {'spin (µs)':>10} {'CPU per period (µs)':>20} {'longest period (µs)':>20}")
     for axes in (3, 8):
-        config = bench_config(f"cpu-{uuid.uuid4().hex[:8]}", seconds, axes)
-        config = replace(config, modbus=replace(config.modbus, enabled=False))
-        with Runtime(config, log_level="WARNING") as runtime:
-            runtime.wait_for(lambda s: all(a.boot_phase == BootPhase.READY for a in s.axes), 30.0)
-            pid = runtime.process("cycle").pid
-            report: dict = {}
-            before_cpu, before = _cpu_s(pid), runtime.status().stats.cycles
-            run_motion(runtime, seconds, report)
-            status = runtime.status()
-            cpu, periods = _cpu_s(pid) - before_cpu, status.stats.cycles - before
-        print(
-            f"{axes:>5} {cpu / max(periods, 1) * 1e6:>20.1f} {status.stats.execution_max_us:>20.1f}"
-        )
+        for spin in (spin_us, 0.0):
+            config = bench_config(f"cpu-{uuid.uuid4().hex[:8]}", seconds, axes)
+            realtime = replace(config.cycle.realtime, spin_us=spin)
+            config = replace(
+                config,
+                modbus=replace(config.modbus, enabled=False),
+                cycle=replace(config.cycle, realtime=realtime),
+            )
+            with Runtime(config, log_level="WARNING") as runtime:
+                runtime.wait_for(
+                    lambda s: all(a.boot_phase == BootPhase.READY for a in s.axes), 30.0
+                )
+                pid = runtime.process("cycle").pid
+                report: dict = {}
+                before_cpu, before = _cpu_s(pid), runtime.status().stats.cycles
+                run_motion(runtime, seconds, report)
+                status = runtime.status()
+                cpu, periods = _cpu_s(pid) - before_cpu, status.stats.cycles - before
+            print(
+                f"{axes:>5} {spin:>10g} {cpu / max(periods, 1) * 1e6:>20.1f} "
+                f"{status.stats.execution_max_us:>20.1f}"
+            )
 
 
 def main(argv: list[str] | None = None) -> None:
