@@ -60,6 +60,10 @@ HOLD_SLOWDOWN = 0.02
 #: Halvings of the range searched for a braking first segment's peak cap (a 64th of the range
 #: between the lowest limit it spans and the start feed).
 BRAKING_CAP_STEPS = 6
+#: A deeper braking (:func:`_brake_deeper`) aims this fraction below the limit at the excess.
+#: Aimed at the limit itself, the rounds came to it from above in ever smaller steps: 16 rounds
+#: (10 ms) for a re-plan of a loop curve at 1 µm whose excess started at 2.8 %.
+BRAKE_DEEPER_MARGIN = 1e-3
 
 
 def refine(
@@ -434,12 +438,12 @@ def _brake_deeper(
     falls steeply before it: a re-plan from a state accelerating towards a loop's tip, brought to
     zero acceleration first, exceeded the limit by 3 % on the tip's flank. A deeper braking keeps
     its peak deceleration longer and brings the feed down sooner there, so the feed braked to
-    is lowered by the ratio of the limit to the planned feed at the excess (the next round checks
-    again). Where the deceleration has not yet eased, the ramp is the same whatever feed it
-    brakes to: nothing to gain. Called only where the window has no rest to stop at instead
-    (:attr:`Window.rest_inside`, a re-plan's first window): towards a tip of 1.12 mm/s the
-    rounds lowered the feed to 0.12 mm/s and held it over 22 mm (185 s), where stopping at the
-    rest took 1.27 s in all.
+    is lowered by the ratio of the limit to the planned feed at the excess, and
+    ``BRAKE_DEEPER_MARGIN`` more (the next round checks again). Where the deceleration has not
+    yet eased, the ramp is the same whatever feed it brakes to: nothing to gain. Called only
+    where the window has no rest to stop at instead (:attr:`Window.rest_inside`, a re-plan's
+    first window): towards a tip of 1.12 mm/s the rounds lowered the feed to 0.12 mm/s and held
+    it over 22 mm (185 s), where stopping at the rest took 1.27 s in all.
     """
     _, v_limit_bad, v_bad = bad
     v_floor = w.peak_cap[0]
@@ -449,5 +453,5 @@ def _brake_deeper(
     # The ramp is point-symmetric: it eases from v_floor + a_peak² / (2J) on.
     if v_bad >= v_floor + a_peak * a_peak / (2.0 * lim.J):
         return False
-    w.peak_cap[0] = v_floor * v_limit_bad / v_bad
+    w.peak_cap[0] = v_floor * v_limit_bad / v_bad * (1.0 - BRAKE_DEEPER_MARGIN)
     return True
