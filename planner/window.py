@@ -323,84 +323,82 @@ class SpeedScan:
             self.back[changed] = self.cap[changed]
             if changed >= self._back_from - 1:  # the speeds after it are scanned
                 top = min(changed, n - 2)
-        first_new = 1  # the lowest backward speed that may differ from the last scan's
-        for k in range(top, 0, -1):
-            before = self.back[k]
-            bad = self._back_step(k)
-            if bad is not None:
-                self._back_from, self._forward_to = k + 1, 0
-                return bad
-            if resumable and k < changed and self.back[k] == before:
-                first_new = k + 1
-                break
-        else:
-            self._back_from = 1
-        start = 1 if not resumable else first_new
-        for k in range(min(start, self._forward_to + 1), n):
-            before = self.v[k]
-            bad = self._forward_step(k)
-            if bad is not None:
-                self._forward_to = k - 1
-                return bad
-            if resumable and k > changed and self.v[k] == before:
-                return None
-        self._forward_to = n - 1
-        return None
+        first_new, bad = self._backward(top, changed if resumable else None)
+        if bad is not None:
+            return bad
+        return self._forward(first_new if resumable else 1, changed if resumable else None)
 
-    def _back_step(self, k: int) -> int | None:
-        """Backward speed of point k from point k + 1's; the failing pin, if any."""
+    def _backward(self, top: int, changed: int | None) -> tuple[int, int | None]:
+        """Backward speeds from point ``top`` down; with ``changed`` (the last scan complete),
+        only as far as they differ from the last scan's. Returns the lowest point whose speed
+        may differ, and the pin that cannot be met and left (or None)."""
         s, cap, acc, pinned, back = self.s, self.cap, self.acc, self.pinned, self.back
         A, J = self.lim.A, self.lim.J
-        L = s[k + 1] - s[k]
-        if pinned[k]:
-            if pinned[k + 1]:
-                fits = transition_distance_mm(
-                    cap[k], acc[k], back[k + 1], acc[k + 1], A, J
-                ) <= L * (1.0 + RAMP_FIT_RTOL)
+        for k in range(top, 0, -1):
+            before = back[k]
+            L = s[k + 1] - s[k]
+            if pinned[k]:
+                if pinned[k + 1]:
+                    fits = transition_distance_mm(
+                        cap[k], acc[k], back[k + 1], acc[k + 1], A, J
+                    ) <= L * (1.0 + RAMP_FIT_RTOL)
+                else:
+                    # A point of zero acceleration next may be met at any speed up to its own:
+                    # a pin just before a minimum of the limit settles below it.
+                    fits = highest_end_speed(cap[k], acc[k], L, back[k + 1], A, J) is not None
+                if not fits:
+                    # Of two pins too far apart in feed, the faster one gives way.
+                    self._back_from, self._forward_to = k + 1, 0
+                    return k, k + 1 if pinned[k + 1] and cap[k + 1] > cap[k] else k
+            elif acc[k + 1] == 0.0:
+                back[k] = min(cap[k], max_ramp_speed(back[k + 1], L, A, J))
             else:
-                # A point of zero acceleration next may be met at any speed up to its own: a
-                # pin just before a minimum of the limit settles below it.
-                fits = highest_end_speed(cap[k], acc[k], L, back[k + 1], A, J) is not None
-            if not fits:
-                # Of two pins too far apart in feed, the faster one gives way.
-                return k + 1 if pinned[k + 1] and cap[k + 1] > cap[k] else k
-            return None
-        if acc[k + 1] == 0.0:
-            back[k] = min(cap[k], max_ramp_speed(back[k + 1], L, A, J))
-            return None
-        start = highest_start_speed(back[k + 1], acc[k + 1], L, cap[k], A, J)
-        if start is None:
-            return k + 1
-        back[k] = start
-        return None
+                start = highest_start_speed(back[k + 1], acc[k + 1], L, cap[k], A, J)
+                if start is None:
+                    self._back_from, self._forward_to = k + 1, 0
+                    return k, k + 1
+                back[k] = start
+            if changed is not None and k < changed and back[k] == before:
+                return k + 1, None
+        self._back_from = 1
+        return 1, None
 
-    def _forward_step(self, k: int) -> int | None:
-        """Forward speed of point k from point k - 1's; the failing point, if any."""
+    def _forward(self, start: int, changed: int | None) -> int | None:
+        """Forward speeds from point ``start`` on (from the first unscanned one, if earlier);
+        with ``changed`` (the last scan complete), only as far as they differ from the last
+        scan's. Returns the first point that cannot be left, or None."""
         s, cap, acc, pinned, back, v = self.s, self.cap, self.acc, self.pinned, self.back, self.v
         A, J = self.lim.A, self.lim.J
-        L = s[k] - s[k - 1]
-        if acc[k - 1] != 0.0 or pinned[k]:
+        n = len(s)
+        for k in range(min(start, self._forward_to + 1), n):
+            before = v[k]
+            L = s[k] - s[k - 1]
             if pinned[k]:
                 v[k] = cap[k]
-                return None
-            end = highest_end_speed(v[k - 1], acc[k - 1], L, back[k], A, J)
-            if end is None:
-                return k - 1
-            v[k] = end
-            return None
-        v[k] = min(back[k], max_ramp_speed(v[k - 1], L, A, J))
-        fits = L * (1.0 + RAMP_FIT_RTOL)
-        if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], A, J) > fits:
-            # Stopping fits where slowing to v[k] does not: slow down further instead. Within
-            # the points' resolution: a re-plan from a row of a plan's hardest braking took
-            # 1.3e-8 mm more to stop (its start state is sampled), and braking hardest instead
-            # came to the curve's end at 44 mm/s, the lowest feed that ramps there at zero
-            # acceleration.
-            if braking_distance_mm(v[k - 1], A, J) <= fits + MIN_POINT_GAP_MM:
-                v[k] = fitting_lower_speed(v[k - 1], v[k], L, A, J)
+            elif acc[k - 1] != 0.0:
+                end = highest_end_speed(v[k - 1], acc[k - 1], L, back[k], A, J)
+                if end is None:
+                    self._forward_to = k - 1
+                    return k - 1
+                v[k] = end
             else:
-                # Only a start state faster than the constraints allow gets here: brake hardest.
-                v[k] = max(v[k], min_ramp_speed(v[k - 1], L, A, J))
+                v[k] = min(back[k], max_ramp_speed(v[k - 1], L, A, J))
+                fits = L * (1.0 + RAMP_FIT_RTOL)
+                if v[k] < v[k - 1] and ramp_distance_mm(v[k - 1], v[k], A, J) > fits:
+                    # Stopping fits where slowing to v[k] does not: slow down further instead.
+                    # Within the points' resolution: a re-plan from a row of a plan's hardest
+                    # braking took 1.3e-8 mm more to stop (its start state is sampled), and
+                    # braking hardest instead came to the curve's end at 44 mm/s, the lowest
+                    # feed that ramps there at zero acceleration.
+                    if braking_distance_mm(v[k - 1], A, J) <= fits + MIN_POINT_GAP_MM:
+                        v[k] = fitting_lower_speed(v[k - 1], v[k], L, A, J)
+                    else:
+                        # Only a start state faster than the constraints allow gets here:
+                        # brake hardest.
+                        v[k] = max(v[k], min_ramp_speed(v[k - 1], L, A, J))
+            if changed is not None and k > changed and v[k] == before:
+                return None
+        self._forward_to = n - 1
         return None
 
 
