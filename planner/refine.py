@@ -317,7 +317,7 @@ def _failing(
     keys: dict[int, tuple] = {}
     unchecked: dict[tuple, tuple[float, float, tuple[Phase, ...], float, float, float]] = {}
     for k in range(len(w.s) - 1):
-        keys[k] = key = w.key(k, v, lim)
+        keys[k] = key = w.key(k, v, w.peak_cap[k])
         if key not in verdicts and key not in unchecked:
             unchecked[key] = _checked(w, k, v, segment_plan(w, k, v, lim))
     verdicts.update(zip(unchecked, checker.worst_of(list(unchecked.values())), strict=True))

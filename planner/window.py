@@ -143,9 +143,10 @@ class Window:
         # or, given ``plans`` (:meth:`SegmentPlans.for_limits`), in any with the same A and J.
         self.plans: _Plans = {} if plans is None else plans
 
-    def key(self, k: int, v: list[float], lim: PlanLimits) -> tuple:
+    def key(self, k: int, v: list[float], cap: float) -> tuple:
         """What segment k's plan depends on besides A and J: its ends, end states, feed cap
-        (:func:`segment_cap`) and profile kind."""
+        (:func:`segment_cap`; within one window, whose limits are fixed, its peak cap will do)
+        and profile kind."""
         return (
             self.s[k],
             self.s[k + 1],
@@ -153,7 +154,7 @@ class Window:
             v[k + 1],
             self.acc[k],
             self.acc[k + 1],
-            segment_cap(self, self.s, k, v, lim),
+            cap,
             self.cosine[k],
         )
 
@@ -485,7 +486,7 @@ def segment_plan(
     scan unpins such ends, so only a trial of a lower peak cap meets it)."""
     if w.acc[k] != 0.0 or w.acc[k + 1] != 0.0:
         return _shape(w, w.s, k, v, w.acc, lim)
-    key = w.key(k, v, lim)
+    key = w.key(k, v, segment_cap(w, w.s, k, v, lim))
     if key not in w.plans:
         v0, v1, L = v[k], v[k + 1], w.s[k + 1] - w.s[k]
         if w.cosine[k] == 1:
