@@ -105,9 +105,10 @@ class Checker:
         s, v, _, _ = train.sample(times)
         limit = np.interp(s, self.s_env, self.v_env)
         excess = v - limit * (1.0 + CHECK_SLACK) - 1e-9
-        worst = first + np.array(
-            [int(np.argmax(excess[lo : lo + n])) for lo, n in zip(first, counts, strict=True)]
-        )
+        # The first sample of each segment where its excess is largest (argmax per segment).
+        segment = np.repeat(np.arange(len(counts)), counts)
+        at_max = np.flatnonzero(excess == np.maximum.reduceat(excess, first)[segment])
+        worst = at_max[np.searchsorted(segment[at_max], np.arange(len(counts)))]
         for i, j in zip(sampled, worst.tolist(), strict=True):
             if excess[j] > 0.0:
                 out[i] = (float(s[j]), float(limit[j]), float(v[j]))

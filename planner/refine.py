@@ -314,10 +314,9 @@ def _failing(
     w: Window, v: list[float], checker: Checker, lim: PlanLimits, verdicts: dict
 ) -> list[tuple[int, tuple[float, float, float]]]:
     """Failing segments, last first, with their worst excess (s, v_limit, v_planned)."""
-    keys: dict[int, tuple] = {}
+    keys = w.keys(v)
     unchecked: dict[tuple, tuple[float, float, tuple[Phase, ...], float, float, float]] = {}
-    for k in range(len(w.s) - 1):
-        keys[k] = key = w.key(k, v, w.peak_cap[k])
+    for k, key in enumerate(keys):
         if key not in verdicts and key not in unchecked:
             unchecked[key] = _checked(w, k, v, segment_plan(w, k, v, lim))
     verdicts.update(zip(unchecked, checker.worst_of(list(unchecked.values())), strict=True))

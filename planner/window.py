@@ -158,6 +158,24 @@ class Window:
             self.cosine[k],
         )
 
+    def keys(self, v: list[float]) -> list[tuple]:
+        """:meth:`key` of every segment with its peak cap, in order (one pass, no call per
+        segment: a refinement round keys every segment of its window)."""
+        s, acc = self.s, self.acc
+        return list(
+            zip(
+                s[:-1],
+                s[1:],
+                v[:-1],
+                v[1:],
+                acc[:-1],
+                acc[1:],
+                self.peak_cap,
+                self.cosine,
+                strict=True,
+            )
+        )
+
     def insert(
         self,
         k: int,
