@@ -31,6 +31,7 @@ runs: a measurement, not a test.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import multiprocessing
 import os
@@ -53,7 +54,7 @@ from runtime.config import DEMO_CURVE_PATH, MachineConfig, RealtimeConfig, load_
 from runtime.curves import load_curve_file
 from runtime.scheduler import CycleTick, CyclicTask
 from runtime.status import MachineState, StatusSnapshot
-from runtime.supervisor import Runtime
+from runtime.supervisor import CommandRefused, Runtime
 from runtime.wakeups import host_steal_s
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,6 +66,8 @@ OVERRIDES = (30.0, 60.0, 100.0, 150.0, 80.0, 120.0)
 OVERRIDE_EVERY_S = 0.1
 CLIENTS = 10
 CLIENT_RATE_HZ = 20.0
+#: Longest wait for the machine to come back to STANDBY after a fault during the run [s].
+RECOVER_TIMEOUT_S = 30.0
 
 
 # -- helper processes ---------------------------------------------------------------------------
@@ -186,16 +189,21 @@ def run_motion(runtime: Runtime, seconds: float, report: dict) -> None:
     while time.monotonic() < end:
         runtime.supervise()
         status = runtime.status()
-        if status.state is MachineState.STANDBY:
-            runtime.command(CommandCode.START)
-        elif status.state is MachineState.ERROR_STOP:
-            faults.append(status.message)
-            _recover(runtime)
-        elif status.state is MachineState.MOVING and time.monotonic() >= next_change:
-            percent = OVERRIDES[changes % len(OVERRIDES)]
-            changes += 1
-            runtime.command(CommandCode.SET_OVERRIDE, override_percent=percent)
-            next_change = time.monotonic() + OVERRIDE_EVERY_S
+        # A fault may come between the status read and the command: the command is then
+        # refused, and the next pass sees the fault.
+        with contextlib.suppress(CommandRefused):
+            if status.state is MachineState.STANDBY:
+                runtime.command(CommandCode.START)
+            elif status.state is MachineState.ERROR_STOP:
+                faults.append(status.message)
+                if not _recover(runtime):
+                    faults.append(f"not recovered: {runtime.status().message}")
+                    break
+            elif status.state is MachineState.MOVING and time.monotonic() >= next_change:
+                percent = OVERRIDES[changes % len(OVERRIDES)]
+                changes += 1
+                runtime.command(CommandCode.SET_OVERRIDE, override_percent=percent)
+                next_change = time.monotonic() + OVERRIDE_EVERY_S
         if status.stats.overrides_applied != applied:
             applied = status.stats.overrides_applied
             latencies.append(
@@ -213,12 +221,20 @@ def run_motion(runtime: Runtime, seconds: float, report: dict) -> None:
     )
 
 
-def _recover(runtime: Runtime) -> None:
-    runtime.command(CommandCode.RESET)
-    runtime.wait_for(lambda s: s.state in (MachineState.STANDBY, MachineState.DISABLED), 10.0)
-    if runtime.status().state is MachineState.DISABLED:
-        runtime.command(CommandCode.ENABLE)
-        runtime.wait_for(lambda s: s.state is MachineState.STANDBY, 10.0)
+def _recover(runtime: Runtime) -> bool:
+    """Reset and enable again after a fault; whether the machine is in STANDBY within
+    :data:`RECOVER_TIMEOUT_S`. A host that stalls the cycle again while the drives come back
+    faults them again: the reset is repeated (the faults meanwhile count as one)."""
+    deadline = time.monotonic() + RECOVER_TIMEOUT_S
+    while time.monotonic() < deadline:
+        state = runtime.status().state
+        if state is MachineState.STANDBY:
+            return True
+        code = CommandCode.ENABLE if state is MachineState.DISABLED else CommandCode.RESET
+        with contextlib.suppress(CommandRefused, TimeoutError):
+            runtime.command(code)
+            runtime.wait_for(lambda s, before=state: s.state is not before, 5.0)
+    return runtime.status().state is MachineState.STANDBY
 
 
 def interval_figures(times_s: np.ndarray, period_s: float) -> dict[str, float]:
