@@ -39,12 +39,14 @@ class PhaseTrain:
         self.t_s, self.s_mm, self.v_mm_s, self.a_mm_s2 = t_s, s_mm, v_mm_s, a_mm_s2
         # One row per phase: start t, s, v, a, jerk, cosine dv (nan for constant jerk), duration.
         self._rows: list[tuple[float, float, float, float, float, float, float]] = []
+        self._table: np.ndarray | None = None  # the rows as an array, once sampled
 
     def __len__(self) -> int:
         return len(self._rows)
 
     def extend(self, phases: Sequence[Phase]) -> None:
         """Append phases, advancing the end state exactly (constant jerk: cubic in time)."""
+        self._table = None
         for phase in phases:
             tau = phase.duration_s
             if tau <= 0.0:
@@ -77,9 +79,11 @@ class PhaseTrain:
         if not self._rows:
             full = np.full(t.shape, self.s_mm)
             return full, np.full(t.shape, self.v_mm_s), np.zeros(t.shape), np.zeros(t.shape)
-        rows = np.array(self._rows)
-        t0, s0, v0, a0, j0, dv, dur = rows.T
-        k = np.clip(np.searchsorted(t0, t, side="right") - 1, 0, len(rows) - 1)
+        if self._table is None:
+            # Kept until the train grows: the look-ahead's check samples it more than once.
+            self._table = np.array(self._rows)
+        t0, s0, v0, a0, j0, dv, dur = self._table.T
+        k = np.clip(np.searchsorted(t0, t, side="right") - 1, 0, len(self._rows) - 1)
         tau = np.clip(t - t0[k], 0.0, dur[k])
         s = s0[k] + v0[k] * tau + a0[k] * tau**2 / 2.0 + j0[k] * tau**3 / 6.0
         v = v0[k] + a0[k] * tau + j0[k] * tau**2 / 2.0
