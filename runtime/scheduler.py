@@ -19,8 +19,9 @@ Timing (reference modbus-hmi.md §8; LinuxCNC and OpenPLC use the same absolute 
   a cycle that skips nothing but was delayed by the previous step's overrun leaves it unchanged,
   so a step that chronically needs more than a period keeps the run growing. When the run first
   exceeds ``overrun_limit``, ``on_overrun_limit(run)`` is called once, just before the step of
-  that cycle (so the step can already react, e.g. go to ErrorStop). A single stall costing
-  ``overrun_limit`` periods is tolerated; one more trips.
+  that cycle (so the step can already react, e.g. go to ErrorStop), after a warning that gives
+  how late the thread woke and how long the step before it took, on the clock and on the CPU.
+  A single stall costing ``overrun_limit`` periods is tolerated; one more trips.
 
 Numbering: ``CycleTick.index`` counts executed cycles (0, 1, 2, ... with no gaps);
 ``CycleTick.period_index`` counts periods since start including skipped ones, so
@@ -272,6 +273,7 @@ class CyclicTask:
         self._lateness_last_s = 0.0
         self._lateness_max_s = 0.0
         self._execution_last_s = 0.0
+        self._execution_last_cpu_s = 0.0
         self._execution_max_s = 0.0
         self._ring.clear()
         self._percentiles_us = self._ring.percentiles_us()
@@ -351,6 +353,7 @@ class CyclicTask:
                 miss_run += missed
                 if miss_run > self._overrun_limit and not run_reported:
                     run_reported = True
+                    self._report_overrun_run(miss_run, wake_lateness_s)
                     if self._on_overrun_limit is not None:
                         self._on_overrun_limit(miss_run)
 
@@ -371,8 +374,23 @@ class CyclicTask:
             self._lateness_max_s = lateness_s
         self._ring.record(lateness_s)
 
+    def _report_overrun_run(self, run: int, wake_lateness_s: float) -> None:
+        # Both figures, so the log tells a thread kept off the CPU (a late wake after a short
+        # step: a higher priority or the host) from a step that overran (on the CPU or blocked).
+        logger.warning(
+            "cyclic task %s: %d consecutive periods missed (limit %d): woke %.2f ms after the "
+            "first deadline due; the step before took %.2f ms (%.2f ms of it on the CPU)",
+            self.name,
+            run,
+            self._overrun_limit,
+            wake_lateness_s * 1e3,
+            self._execution_last_s * 1e3,
+            self._execution_last_cpu_s * 1e3,
+        )
+
     def _record_execution(self, execution_s: float, cpu_s: float) -> None:
         self._execution_last_s = execution_s
+        self._execution_last_cpu_s = cpu_s
         if execution_s <= self._execution_max_s:
             return
         self._execution_max_s = execution_s

@@ -176,6 +176,24 @@ def test_a_single_stall_of_limit_periods_is_tolerated_one_more_trips() -> None:
     assert calls == [4]
 
 
+def test_a_tripping_run_is_logged_with_the_wake_lateness_and_the_step_before(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # A late wake after short steps (the thread kept off the CPU) and a step that overran read
+    # differently in the log: the wake lateness against the step time before it.
+    fake = FakeTime()
+    fake.oversleep_s = [5.25 * PERIOD_S]
+    with caplog.at_level(logging.WARNING, logger="runtime.scheduler"):
+        run_fake(3, fake=fake, overrun_limit=3)
+        run_fake(3, {1: 5.25 * PERIOD_S}, overrun_limit=3)
+    kept_off, overran = (r.getMessage() for r in caplog.records if "consecutive" in r.message)
+    woke_ms = 5.25 * PERIOD_S * 1e3
+    assert f"5 consecutive periods missed (limit 3): woke {woke_ms:.2f} ms after" in kept_off
+    assert "the step before took 0.00 ms" in kept_off
+    assert f"woke {woke_ms - PERIOD_S * 1e3:.2f} ms after" in overran
+    assert f"the step before took {woke_ms:.2f} ms" in overran
+
+
 def test_on_time_cycle_ends_the_run_so_a_new_run_can_trip_again() -> None:
     calls: list[int] = []
     # Steps of 2 periods on alternate cycles: one skip each, but the cycle after the skip is
