@@ -195,7 +195,8 @@ def run_motion(runtime: Runtime, seconds: float, report: dict) -> None:
             if status.state is MachineState.STANDBY:
                 runtime.command(CommandCode.START)
             elif status.state is MachineState.ERROR_STOP:
-                faults.append(status.message)
+                # The fault, not the message: a command applied in ErrorStop replaces that.
+                faults.append(status.fault.text if status.fault else status.message)
                 if not _recover(runtime):
                     faults.append(f"not recovered: {runtime.status().message}")
                     break
