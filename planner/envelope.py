@@ -67,6 +67,9 @@ CUSP_SEARCH_STEPS = 60
 #: |C'| where a tangent reverses, relative to the largest |C'| on the chunk's grid, below which
 #: the reversal is a cusp (a stop); the search ends about 1e-11 from a true cusp.
 CUSP_SPEED_RTOL = 1e-6
+#: Points, at halving distances, at which a grid interval is searched for a reversal towards
+#: an end where C' = 0 (the last is 2^-40 of the interval from it).
+STILL_END_HALVINGS = 40
 #: A near-cusp is a tip, not a stop, where its feed limit is above this many singular floors
 #: (planner.feed.singular_floor_feed).
 TIP_FLOOR_RATIO = 4.0
@@ -391,14 +394,16 @@ class FeedEnvelope:
         There V_k / |t_k| is lowest, and flat: interpolated linearly from the grid, the limit
         missed that minimum by 1 % where a tangent turned through an axis's direction between
         two samples. Found where |t_k| at a sample is above its neighbours', by ternary search
-        between them.
+        between them; the first and last samples have one neighbour (a peak just after the
+        curve's start was missed: 1.03 of an axis's feed limit).
         """
-        if self._planning_limits.axis_vmax_mm_s is None or len(u) < 3:
+        if self._planning_limits.axis_vmax_mm_s is None or len(u) < 2:
             return np.empty(0)
         with np.errstate(invalid="ignore", divide="ignore"):
             t = np.abs(d1) / np.linalg.norm(d1, axis=1)[:, None]
-        rows, axes = np.nonzero((t[1:-1] > t[:-2]) & (t[1:-1] >= t[2:]))
-        lo, hi = u[rows], u[rows + 2]
+        padded = np.pad(t, ((1, 1), (0, 0)), constant_values=-1.0)
+        rows, axes = np.nonzero((padded[1:-1] > padded[:-2]) & (padded[1:-1] >= padded[2:]))
+        lo, hi = u[np.maximum(rows - 1, 0)], u[np.minimum(rows + 1, len(u) - 1)]
 
         def less_component(at: np.ndarray) -> np.ndarray:
             d = self._curve.evaluate(at, order=1)[1]
@@ -421,17 +426,15 @@ class FeedEnvelope:
         nearly on a line has a radius of 1e-11 mm, far too narrow for the curvature maxima's
         search: taken for a tip, it was passed at speed (4.7 A, 117 J).
         """
-        dots = np.sum(d1[:-1] * d1[1:], axis=1)
-        norms = np.linalg.norm(d1[:-1], axis=1) * np.linalg.norm(d1[1:], axis=1)
-        turn = np.flatnonzero((norms > 0.0) & (dots < 0.0))
-        if turn.size == 0:
+        lo, hi = self._turns(u, d1)
+        if lo.size == 0:
             return np.empty(0), np.empty(0)
 
         def speed(at: np.ndarray) -> np.ndarray:
             return np.linalg.norm(self._curve.evaluate(at, order=1)[1], axis=1)
 
-        mid = ternary_minima(u[turn], u[turn + 1], speed, CUSP_SEARCH_STEPS)
-        mid = mid[(mid > u[turn]) & (mid < u[turn + 1])]
+        mid = ternary_minima(lo, hi, speed, CUSP_SEARCH_STEPS)
+        mid = mid[(mid > lo) & (mid < hi)]
         scale = np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
         _, v, d1_mid, _ = self._limit(mid)
         floor = singular_floor_feed(self._planning_limits, self._T)
@@ -439,6 +442,35 @@ class FeedEnvelope:
             _lower_part(v) > TIP_FLOOR_RATIO * floor
         )
         return mid[~tip], mid[tip]
+
+    def _turns(self, u: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Brackets (lo, hi) between parameters whose tangents point apart.
+
+        A sample where C' = 0 (a repeated end control point, a cusp on the grid) has no tangent
+        direction: the grid intervals next to it are searched at points halving their distance
+        to it. Compared with the sample itself, a reversal just before the end of a curve whose
+        last control points repeat went unseen and was passed at speed (1.15 A, 19 J).
+        """
+        speed = np.linalg.norm(d1, axis=1)
+        moving = speed > 0.0
+        dots = np.sum(d1[:-1] * d1[1:], axis=1)
+        turn = np.flatnonzero(moving[:-1] & moving[1:] & (dots < 0.0))
+        lo, hi = [u[turn]], [u[turn + 1]]
+        halvings = 0.5 ** np.arange(1, STILL_END_HALVINGS + 1)
+        for i in np.flatnonzero(~(moving[:-1] & moving[1:]) & (u[1:] > u[:-1])):
+            a, b = u[i], u[i + 1]
+            inner = [a + (b - a) * halvings] if not moving[i] else []
+            if not moving[i + 1]:
+                inner.append(b - (b - a) * halvings)
+            at = np.unique(np.concatenate([[a, b], *inner]))
+            d = self._curve.evaluate(at, order=1)[1]
+            inner_moving = np.linalg.norm(d, axis=1) > 0.0
+            k = np.flatnonzero(
+                inner_moving[:-1] & inner_moving[1:] & (np.sum(d[:-1] * d[1:], axis=1) < 0.0)
+            )
+            lo.append(at[k])
+            hi.append(at[k + 1])
+        return np.concatenate(lo), np.concatenate(hi)
 
     def _tight_midpoints(
         self, u: np.ndarray, v: np.ndarray

@@ -276,6 +276,18 @@ FOUND_CASES = {
         1e-4,
         100.0,
     ),
+    # Degree 4 up and down the y axis, its last two control points one: C'(1) = 0, and the
+    # curve reverses 0.019 mm before its end, inside the grid's last interval. Its tangent
+    # was compared with the end's, which has none: the reversal went unseen and was passed at
+    # 4 mm/s (1.15 A, 19 J at every limit tried; planner.envelope searches such an interval
+    # towards its end now).
+    "a reversal just before an end whose control points repeat": (
+        NurbsCurve.from_arrays(
+            4, np.array([[0, 0], [0, -7], [0, 1], [0, 0], [0, 0]]), np.array([0] * 5 + [1] * 5)
+        ),
+        1e-3,
+        100.0,
+    ),
 }
 
 
@@ -364,6 +376,30 @@ def test_a_tangent_turning_through_an_axis_between_grid_samples_keeps_that_axis_
     )
     block = plan_setpoints(Path(curve, limits, T), limits, T)
     assert np.abs(np.diff(block.position_mm, axis=0)).max() / T <= 10.0 * 1.001
+
+
+def test_a_tangent_turning_through_an_axis_just_after_the_start_keeps_that_axis_feed():
+    # Found by a longer run with per-axis feed limits: the tangent turns through -y between
+    # the first two grid samples, and the first sample, with one neighbour, was not searched
+    # for that peak. The y axis moved at 10.30 mm/s against its 10 (10.03 now, within the
+    # property tests' 1 %).
+    curve = NurbsCurve.from_arrays(
+        3,
+        np.array(
+            [[0, 4], [1, 0], [-3, 0], [-3, 0], [-3, 0], [-3, 0], [0, 0], [0, 0], [0, 0], [0, 0]]
+        ),
+        np.array([0, 0, 0, 0, 0.25, 0.25, 0.5, 0.5, 0.5, 0.75, 1, 1, 1, 1]),
+        np.array([1, 1, 3, 1, 1, 1, 1, 1, 1, 1]),
+    )
+    limits = Limits(
+        vmax_mm_s=100.0,
+        amax_mm_s2=1000.0,
+        jmax_mm_s3=20000.0,
+        chord_error_mm=1e-4,
+        axis_vmax_mm_s=(10.0, 10.0),
+    )
+    block = plan_setpoints(Path(curve, limits, T), limits, T)
+    assert np.abs(np.diff(block.position_mm, axis=0)).max() / T <= 10.0 * 1.01
 
 
 def test_a_pin_on_a_flat_limit_is_reached_by_the_segment_before_it():
