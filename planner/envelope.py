@@ -156,6 +156,16 @@ def ternary_minima(
     return 0.5 * (lo + hi)
 
 
+def _pointing_apart(
+    u: np.ndarray, d1: np.ndarray, still_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Brackets (lo, hi) from each parameter where |C'| (``d1``) is above ``still_mm`` to the
+    next such one, where their tangents point apart (turn by more than 90 degrees)."""
+    rows = np.flatnonzero(np.linalg.norm(d1, axis=1) > still_mm)
+    turn = np.sum(d1[rows[:-1]] * d1[rows[1:]], axis=1) < 0.0
+    return u[rows[:-1][turn]], u[rows[1:][turn]]
+
+
 def _lower_part(v: np.ndarray) -> np.ndarray:
     """The lower of the feed limit's two parts (``v``'s columns) at each sample.
 
@@ -426,7 +436,8 @@ class FeedEnvelope:
         nearly on a line has a radius of 1e-11 mm, far too narrow for the curvature maxima's
         search: taken for a tip, it was passed at speed (4.7 A, 117 J).
         """
-        lo, hi = self._turns(u, d1)
+        scale = np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
+        lo, hi = self._turns(u, d1, CUSP_SPEED_RTOL * scale)
         if lo.size == 0:
             return np.empty(0), np.empty(0)
 
@@ -435,7 +446,6 @@ class FeedEnvelope:
 
         mid = ternary_minima(lo, hi, speed, CUSP_SEARCH_STEPS)
         mid = mid[(mid > lo) & (mid < hi)]
-        scale = np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
         _, v, d1_mid, _ = self._limit(mid)
         floor = singular_floor_feed(self._planning_limits, self._T)
         tip = (np.linalg.norm(d1_mid, axis=1) > CUSP_SPEED_RTOL * scale) & (
@@ -443,19 +453,22 @@ class FeedEnvelope:
         )
         return mid[~tip], mid[tip]
 
-    def _turns(self, u: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _turns(
+        self, u: np.ndarray, d1: np.ndarray, still_mm: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Brackets (lo, hi) between parameters whose tangents point apart.
 
-        A sample where C' = 0 (a repeated end control point, a cusp on the grid) has no tangent
-        direction: the grid intervals next to it are searched at points halving their distance
-        to it. Compared with the sample itself, a reversal just before the end of a curve whose
-        last control points repeat went unseen and was passed at speed (1.15 A, 19 J).
+        A sample where |C'| is at most ``still_mm`` (a repeated end control point, a cusp on the
+        grid, a span of zero length; a rational curve leaves round-off there, not 0) has no
+        tangent direction to trust. Each moving sample is compared with the next moving one,
+        and a grid interval next to a still sample is also searched at points halving their
+        distance to it. Compared with the still sample itself, a reversal just before the end of
+        a curve whose last control points repeat went unseen and was passed at speed (1.15 A,
+        19 J).
         """
-        speed = np.linalg.norm(d1, axis=1)
-        moving = speed > 0.0
-        dots = np.sum(d1[:-1] * d1[1:], axis=1)
-        turn = np.flatnonzero(moving[:-1] & moving[1:] & (dots < 0.0))
-        lo, hi = [u[turn]], [u[turn + 1]]
+        lo, hi = _pointing_apart(u, d1, still_mm)
+        brackets = [(lo, hi)]
+        moving = np.linalg.norm(d1, axis=1) > still_mm
         halvings = 0.5 ** np.arange(1, STILL_END_HALVINGS + 1)
         for i in np.flatnonzero(~(moving[:-1] & moving[1:]) & (u[1:] > u[:-1])):
             a, b = u[i], u[i + 1]
@@ -463,14 +476,9 @@ class FeedEnvelope:
             if not moving[i + 1]:
                 inner.append(b - (b - a) * halvings)
             at = np.unique(np.concatenate([[a, b], *inner]))
-            d = self._curve.evaluate(at, order=1)[1]
-            inner_moving = np.linalg.norm(d, axis=1) > 0.0
-            k = np.flatnonzero(
-                inner_moving[:-1] & inner_moving[1:] & (np.sum(d[:-1] * d[1:], axis=1) < 0.0)
-            )
-            lo.append(at[k])
-            hi.append(at[k + 1])
-        return np.concatenate(lo), np.concatenate(hi)
+            brackets.append(_pointing_apart(at, self._curve.evaluate(at, order=1)[1], still_mm))
+        lows, highs = zip(*brackets, strict=True)
+        return np.concatenate(lows), np.concatenate(highs)
 
     def _tight_midpoints(
         self, u: np.ndarray, v: np.ndarray

@@ -288,6 +288,18 @@ FOUND_CASES = {
         1e-3,
         100.0,
     ),
+    # The same off the origin and rational: C'(1) is round-off (3e-14), not 0, and its
+    # direction is noise.
+    "a reversal just before a rational end whose control points repeat": (
+        NurbsCurve.from_arrays(
+            4,
+            np.array([[0.1, 0.2], [0.1, -7], [0.1, 1], [0.1, 0.2], [0.1, 0.2]]),
+            np.array([0] * 5 + [1] * 5),
+            np.array([1, 2, 1, 1.7, 1.3]),
+        ),
+        1e-3,
+        100.0,
+    ),
 }
 
 
