@@ -81,6 +81,8 @@ PEAK_FLAT_RTOL = 1e-5
 #: Ternary-search steps locating where a tangent component peaks between grid samples (the
 #: bracket shrinks to 3e-4 of two grid intervals, where the component is flat).
 AXIS_SEARCH_STEPS = 20
+#: Samples around such a peak, in grid intervals from it.
+AXIS_PEAK_OFFSETS = np.array([-0.5, -0.25, -0.125, 0.0, 0.125, 0.25, 0.5])
 #: Halvings of the grid towards a sharp corner (C'(u) = 0).
 CORNER_REFINEMENTS = 30
 #: The envelope dilation assumes feed overrides up to this ratio of the path's vmax.
@@ -420,7 +422,13 @@ class FeedEnvelope:
             with np.errstate(invalid="ignore", divide="ignore"):
                 return -np.abs(d[np.arange(len(at)), np.tile(axes, 2)]) / np.linalg.norm(d, axis=1)
 
-        return ternary_minima(lo, hi, less_component, AXIS_SEARCH_STEPS)
+        peaks = ternary_minima(lo, hi, less_component, AXIS_SEARCH_STEPS)
+        # V_k / |t_k| is convex around its minimum: interpolated linearly from there over a
+        # whole grid interval, it stood 1.3 % above the limit. Samples at an eighth, a quarter
+        # and half the interval either side bring that under 0.4 %.
+        i = np.clip(np.searchsorted(u, peaks), 1, len(u) - 1)
+        width = (u[i] - u[i - 1])[:, None]
+        return np.clip(peaks[:, None] + width * AXIS_PEAK_OFFSETS, u[0], u[-1]).ravel()
 
     def _reversals(self, u: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Parameters inside a span where the tangent reverses: (cusps, tips).

@@ -382,31 +382,58 @@ def test_a_tangent_turning_through_an_axis_between_grid_samples_keeps_that_axis_
     assert fastest_axis_feed_mm_s(curve, vmax_mm_s=20.0, chord_error_mm=1e-3) <= 10.0 * 1.001
 
 
-def test_a_tangent_turning_through_an_axis_just_after_the_start_keeps_that_axis_feed():
-    # Found by a longer run with per-axis feed limits: the tangent turns through -y between
-    # the first two grid samples, and the first sample, with one neighbour, was not searched
-    # for that peak. The y axis moved at 10.30 mm/s against its 10 (10.03 now, within the
-    # property tests' 1 %).
-    curve = NurbsCurve.from_arrays(
+#: Found by longer runs with per-axis feed limits: curves whose tangent turns through an axis
+#: at or just after the start, the first grid sample the peak of |t_k|.
+AXIS_PEAKS_AT_THE_START = {
+    # Through -y between the first two samples; the first sample, with one neighbour, was not
+    # searched for that peak: the y axis moved at 10.30 mm/s against its 10.
+    "through -y between the first two samples": NurbsCurve.from_arrays(
         3,
         np.array(
             [[0, 4], [1, 0], [-3, 0], [-3, 0], [-3, 0], [-3, 0], [0, 0], [0, 0], [0, 0], [0, 0]]
         ),
         np.array([0, 0, 0, 0, 0.25, 0.25, 0.5, 0.5, 0.5, 0.75, 1, 1, 1, 1]),
         np.array([1, 1, 3, 1, 1, 1, 1, 1, 1, 1]),
-    )
-    assert fastest_axis_feed_mm_s(curve, vmax_mm_s=100.0, chord_error_mm=1e-4) <= 10.0 * 1.01
+    ),
+    # Starting along +z: V_z / |t_z| is lowest at the start and convex there; interpolated
+    # linearly over the first grid interval it let the z axis move at 10.13 mm/s.
+    "along +z from the start": NurbsCurve.from_arrays(
+        4,
+        np.array(
+            [
+                [0, 0, 0],
+                [0, 0, 5.9191165],
+                [0, 6, 0],
+                [0, -21, 0],
+                [17, 23.28645134, 0],
+                [17, 23.28645134, 0],
+                [17, 23.28645134, 0],
+                [0, 0, 0],
+                [0, 0, 0],
+                [0, 0, 0],
+            ]
+        ),
+        np.array([0, 0, 0, 0, 0, 0.25, 0.25, 0.375, 0.5, 0.5, 1, 1, 1, 1, 1]),
+        np.array([0.875, 2, 3, 0.375, 2.5, 1, 1, 1, 1, 1]),
+    ),
+}
+
+
+@pytest.mark.parametrize("name", AXIS_PEAKS_AT_THE_START)
+def test_a_tangent_turning_through_an_axis_at_the_start_keeps_that_axis_feed(name):
+    curve = AXIS_PEAKS_AT_THE_START[name]
+    assert fastest_axis_feed_mm_s(curve, vmax_mm_s=100.0, chord_error_mm=1e-4) <= 10.0 * 1.001
 
 
 def fastest_axis_feed_mm_s(curve: NurbsCurve, vmax_mm_s: float, chord_error_mm: float) -> float:
-    """The fastest any axis of a planar ``curve`` moves between setpoints, planned with the
-    paper's A and J and a feed limit of 10 mm/s on each axis."""
+    """The fastest any axis of ``curve`` moves between setpoints, planned with the paper's A
+    and J and a feed limit of 10 mm/s on each axis."""
     limits = Limits(
         vmax_mm_s=vmax_mm_s,
         amax_mm_s2=1000.0,
         jmax_mm_s3=20000.0,
         chord_error_mm=chord_error_mm,
-        axis_vmax_mm_s=(10.0, 10.0),
+        axis_vmax_mm_s=(10.0,) * curve.dimension,
     )
     block = plan_setpoints(Path(curve, limits, T), limits, T)
     return float(np.abs(np.diff(block.position_mm, axis=0)).max() / T)
