@@ -122,7 +122,9 @@ def hermite_peaks(
     dip) or both falling (a dip, then a peak). With p'(t) = a t² + b t + m0 on t in [0, 1]
     (m = slope du), the maximum is the root where p'' = 2 a t + b < 0.
     """
-    with np.errstate(invalid="ignore", divide="ignore"):  # a corner's inf curvature: no peak
+    # A corner's inf curvature, or slopes so steep next to a cusp that b² overflows: no peak
+    # found here (the cusps' and tips' own searches take those).
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         m0, m1, rise = slope0 * du, slope1 * du, k1 - k0
         a = 3.0 * (m0 + m1) - 6.0 * rise
         b = 6.0 * rise - 4.0 * m0 - 2.0 * m1
