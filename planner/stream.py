@@ -350,9 +350,12 @@ def _block(path: Path, interp: Interpolator, cols: list[np.ndarray], last: bool)
     t, s, v, a, j = cols
     u = interp.parameters(s)
     position = path.curve.evaluate(u)[0]
-    # Rows on the curve's end (the table is complete once a plan has reached it).
+    # Rows on the curve's end (the table is complete once a plan has reached it). A profile
+    # may overshoot it by round-off (2e-9 mm): such a row is at the end, and a re-plan from it
+    # starts there, within the path.
     at_end = s >= (path.arc.built_mm if path.arc.complete else math.inf)
     if at_end.any():
+        s = np.where(at_end, path.arc.built_mm, s)
         u[at_end] = path.curve.domain[1]
         position[at_end] = path.curve.end_point
     return SetpointBlock(

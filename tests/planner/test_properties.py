@@ -544,6 +544,39 @@ def test_the_motion_leaves_a_stop_where_a_span_has_zero_length():
     assert_the_motion_ends_promptly(curve)
 
 
+def test_a_row_past_the_end_by_round_off_is_at_the_end_and_a_replan_may_start_there():
+    # Found by a longer run of the re-plans: the profile's penultimate row lay 2.4e-9 mm past
+    # the curve's end; a re-plan from it (an override change in the last periods) was refused
+    # with "start.s_mm ... must be within [0, length]".
+    curve = NurbsCurve.from_arrays(
+        3,
+        np.array(
+            [
+                [-10.018742561340332, 27.76668357849121],
+                [0, 30],
+                [-28.343141555786133, 15.745646476745605],
+                [4.883784770965576, 0],
+            ]
+        ),
+        np.array([0, 0, 0, 0, 1, 1, 1, 1]),
+        np.array([0.3, 0.3, 0.3, 0.3]),
+    )
+    limits = Limits(vmax_mm_s=100.0, amax_mm_s2=1000.0, jmax_mm_s3=20000.0, chord_error_mm=1e-4)
+    path = Path(curve, limits, T)
+    first = plan_setpoints(path, limits, T)
+    assert first.s_mm.max() <= path.length_mm
+    for row in range(len(first) - 4, len(first)):
+        end = braking_end_from_rows(first.feed_mm_s[row:], first.accel_mm_s2[row:], T)
+        replan = plan_setpoints(
+            path,
+            limits.with_feed_override(1.2),
+            T,
+            start=first.state(row),
+            braking_end_mm_s=None if end is None else end.feed_mm_s,
+        )
+        assert np.array_equal(replan.position_mm[-1], curve.end_point)
+
+
 def test_the_motion_reaches_an_end_that_turns_within_a_hair():
     # Degree 2, the last leg 1e-42 mm long: at the end the curve turns by 90 degrees, the
     # limit there is the singular floor, not a stop. The envelope lowered the samples before it
