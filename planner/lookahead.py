@@ -2,7 +2,8 @@
 
 Source: section 2.2 of Wang, Zhao, Lu, Liu, China Mechanical Engineering 23(3), 2012, 299-304.
 The stages, one module each:
-- :mod:`planner.envelope`: the feed limit along the arc length (pre-interpolation);
+- :mod:`planner.envelope`: the feed limit along the arc length (pre-interpolation), each sample
+  lowered to the limits a step from it reaches (:mod:`planner.dilation`);
 - :mod:`planner.window`: sensitive points (curvature-rising and -falling modules, F_v_plan),
   the bidirectional scan of their speeds and the S-curve or cosine segment between two points;
 - :mod:`planner.checker`: a segment's planned feed against the limit;

@@ -16,7 +16,8 @@ import yaml
 from planner import lookahead
 from planner import refine as refine_module
 from planner.checker import Checker
-from planner.envelope import CHORD_MARGIN, FeedEnvelope, hermite_peaks
+from planner.dilation import reach_lowered
+from planner.envelope import CHORD_MARGIN, MAX_OVERRIDE_RATIO, FeedEnvelope, hermite_peaks
 from planner.errors import StartTooFast
 from planner.interpolator import Interpolator
 from planner.nurbs import NurbsCurve
@@ -548,20 +549,19 @@ def test_envelope_dilation_is_exact_between_samples(path):
         assert np.all(np.diff(dilated) <= 0.0)
 
 
-def test_envelope_dilation_of_dense_samples_is_the_exact_infimum(path):
+def test_envelope_dilation_of_dense_samples_is_the_exact_infimum():
     # Samples a micrometre apart, each reaching a hundred others within a step, a limit that
     # wanders and two stops: at each sample, the infimum over x of max(f(s_i +- x), x / R) up
     # to the next stop and within a step at its own limit, f linear between samples, as every
     # interval in reach gives it (a curve of 185 spans in 1.3 mm took 12 s to plan when the
     # envelope tried every such pair; a bisection over range minima finds the same values).
-    envelope = FeedEnvelope(path.curve, path.arc, LIMITS, T)
     rng = np.random.default_rng(3)
     s = np.cumsum(rng.uniform(0.2e-3, 1.8e-3, 400))
     f = 20.0 + 10.0 * np.sin(s * 40.0) + rng.uniform(0.0, 3.0, s.size)
     f[[120, 290]] = 0.0  # stops
     own = f * rng.uniform(0.9, 1.3, s.size)
     reach_s = 0.005
-    lowered = envelope._lowered(s, f, own, reach_s)
+    lowered = reach_lowered(s, f, own, reach_s, MAX_OVERRIDE_RATIO * LIMITS.vmax_mm_s)
     assert np.array_equal(lowered, _dilation_by_every_interval(s, f, own, reach_s))
     assert np.isfinite(lowered).sum() > 300
 
@@ -569,7 +569,7 @@ def test_envelope_dilation_of_dense_samples_is_the_exact_infimum(path):
 def _dilation_by_every_interval(
     s: np.ndarray, f: np.ndarray, own: np.ndarray, reach_s: float
 ) -> np.ndarray:
-    """FeedEnvelope._lowered the slow way: each direction, each sample, each interval."""
+    """planner.dilation.reach_lowered the slow way: each direction, each sample, each interval."""
 
     def ahead(s: np.ndarray, f: np.ndarray, own: np.ndarray) -> np.ndarray:
         out = np.full(s.size, np.inf)
