@@ -75,12 +75,7 @@ FAMILY_SEEDS = range(4)
 def random_curve(
     spans: int, seed: int = 7, turn_rad: float = 0.12, step_mm: float = 15.0
 ) -> NurbsCurve:
-    rng = np.random.default_rng(seed)
-    n = spans + 3
-    heading = np.cumsum(rng.normal(0.0, turn_rad, n))
-    points = np.cumsum(np.c_[np.cos(heading), np.sin(heading)] * step_mm, axis=0)
-    knots = np.concatenate([[0.0] * 4, np.arange(1, n - 3), [n - 3.0] * 4])
-    return NurbsCurve.from_arrays(3, points, knots)
+    return cf.walk_curve(spans, seed=seed, step_mm=step_mm, turn_rad=turn_rad)
 
 
 def dense_curve(points: int = 190, length_mm: float = 1.33, noise_mm: float = 5e-4) -> NurbsCurve:

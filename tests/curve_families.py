@@ -9,6 +9,9 @@
 - ``free``: free control polygons (points anywhere in a 60 mm box, degrees 1-5, planar or
   spatial, random weights and interior knots), which fold and loop freely.
 
+Besides the families, :func:`walk_curve` builds long curves of any number of spans (smooth or
+winding) for the streaming tests and the benchmark's first block and real-time factors.
+
 Units: mm. Pure functions of their seed.
 """
 
@@ -88,6 +91,16 @@ def free_curve(seed: int) -> NurbsCurve:
             break
     knots = np.concatenate([[0.0] * (degree + 1), interior, [1.0] * (degree + 1)])
     return NurbsCurve.from_arrays(degree, points, knots, weights)
+
+
+def walk_curve(spans: int, seed: int, step_mm: float, turn_rad: float) -> NurbsCurve:
+    """A planar cubic B-spline of ``spans`` uniform knot spans over a random walk of control
+    points ``step_mm`` apart, whose heading turns by a normal deviate of ``turn_rad`` a step."""
+    rng = np.random.default_rng(seed)
+    n = spans + 3
+    heading = np.cumsum(rng.normal(0.0, turn_rad, n))
+    points = np.cumsum(np.c_[np.cos(heading), np.sin(heading)] * step_mm, axis=0)
+    return NurbsCurve.from_arrays(3, points, _uniform_knots(n, 3))
 
 
 def family(name: str, seeds: range) -> list[NurbsCurve]:

@@ -58,13 +58,8 @@ def path(curve) -> Path:
     return Path(curve, LIMITS, T)
 
 
-def long_curve(spans: int, seed: int = 3, step_mm: float = 2.0, turn_rad: float = 0.15):
-    rng = np.random.default_rng(seed)
-    n = spans + 3
-    heading = np.cumsum(rng.normal(0.0, turn_rad, n))
-    points = np.cumsum(np.c_[np.cos(heading), np.sin(heading)] * step_mm, axis=0)
-    knots = np.concatenate([[0.0] * 4, np.arange(1, n - 3), [n - 3.0] * 4])
-    return NurbsCurve.from_arrays(3, points, knots)
+def long_curve(spans: int, step_mm: float = 2.0, turn_rad: float = 0.15) -> NurbsCurve:
+    return cf.walk_curve(spans, seed=3, step_mm=step_mm, turn_rad=turn_rad)
 
 
 def joined(first: SetpointBlock, k: int, second: SetpointBlock):
