@@ -175,6 +175,38 @@ def _pointing_apart(
     return u[rows[:-1][turn]], u[rows[1:][turn]]
 
 
+def _other_peaks(k: np.ndarray, best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the local maxima of each row of ``k`` besides its highest
+    (column ``best``) that rise more than ``PEAK_FLAT_RTOL`` above the lowest value between
+    them and it.
+
+    A grid interval can hold two peaks: a degree-5 curve's curvature rose to 22 /mm, fell to 1
+    and rose to 10 /mm between two grid samples; the search followed the higher peak alone, and
+    the plan passed the other, 11 µm from a lower sample it took for the limit's minimum, at
+    1.05 delta.
+    """
+    local = np.ones(k.shape, dtype=bool)
+    local[:, 1:] = k[:, 1:] > k[:, :-1]
+    local[:, :-1] &= k[:, :-1] >= k[:, 1:]
+    # Most brackets hold one peak: only those with more local maxima go on.
+    several = np.flatnonzero(np.count_nonzero(local, axis=1) > 1)
+    if several.size == 0:
+        return several, several
+    k, best, local = k[several], best[several], local[several]
+    columns = np.arange(k.shape[1])
+    left, right = columns < best[:, None], columns > best[:, None]
+    # The lowest value from each column to the best one, both included.
+    towards_left = np.minimum.accumulate(np.where(right, np.inf, k)[:, ::-1], axis=1)[:, ::-1]
+    towards_right = np.minimum.accumulate(np.where(left, np.inf, k), axis=1)
+    between = np.full(k.shape, np.inf)
+    between[:, :-1] = np.where(left[:, :-1], towards_left[:, 1:], np.inf)
+    between[:, 1:] = np.where(right[:, 1:], towards_right[:, :-1], between[:, 1:])
+    with np.errstate(invalid="ignore"):
+        other = local & (left | right) & (k > between * (1.0 + PEAK_FLAT_RTOL))
+    rows, found = np.nonzero(other)
+    return several[rows], found
+
+
 def _tight_change(v: np.ndarray) -> np.ndarray:
     """The relative change of the feed limit allowed across a grid interval from each sample
     (``v``'s rows): by which of the limit's two parts binds there."""
@@ -552,7 +584,9 @@ class FeedEnvelope:
         in one call) and the bracket shrinks to the best point's neighbours, until it is flat
         (``PEAK_FLAT_RTOL``: a broad maximum takes two or three rounds), so that a tip far
         narrower than the grid (a near-cusp) is planned at its own radius (a parabola through
-        the grid samples would miss most of it).
+        the grid samples would miss most of it). Every other local maximum of a round's
+        points that stands out of the dip between it and the best one brackets a peak of its
+        own (:func:`_other_peaks`).
         """
         k0, k1, k2 = kappa[:-2], kappa[1:-1], kappa[2:]
         peak = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
@@ -561,22 +595,25 @@ class FeedEnvelope:
         lo = np.concatenate([u[peak - 1], u[hidden]])
         hi = np.concatenate([u[peak + 1], u[hidden + 1]])
         inner = np.linspace(0.0, 1.0, PEAK_SEARCH_POINTS + 2)
-        best = 0.5 * (lo + hi)
-        active = np.arange(len(lo))
+        found = []
         for _ in range(PEAK_SEARCH_STEPS):
-            x = lo[active, None] + (hi - lo)[active, None] * inner
-            k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(active), -1)
+            x = lo[:, None] + (hi - lo)[:, None] * inner
+            k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(lo), -1)
             k = np.where(np.isfinite(k), k, np.inf)
-            i = np.argmax(k, axis=1)
-            rows = np.arange(len(active))
-            best[active], lo[active], hi[active] = x[rows, i + 1], x[rows, i], x[rows, i + 2]
+            rows = np.arange(len(lo))
+            best = np.argmax(k, axis=1)
             # The curvature within PEAK_FLAT_RTOL across the whole bracket: a broad maximum,
             # resolved (the limit no longer changes).
-            flat = k.min(axis=1) >= k[rows, i] * (1.0 - PEAK_FLAT_RTOL)
-            active = active[~flat]
-            if active.size == 0:
+            flat = k.min(axis=1) >= k[rows, best] * (1.0 - PEAK_FLAT_RTOL)
+            found.append(x[rows[flat], best[flat] + 1])
+            other_rows, other = _other_peaks(k, best)
+            rows = np.concatenate([rows[~flat], other_rows])
+            i = np.concatenate([best[~flat], other])
+            lo, hi = x[rows, i], x[rows, i + 2]
+            if rows.size == 0:
                 break
-        return best
+        found.append(0.5 * (lo + hi))
+        return np.concatenate(found)
 
     @staticmethod
     def _corner_grid(u: np.ndarray, v: np.ndarray) -> np.ndarray:

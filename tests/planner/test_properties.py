@@ -276,6 +276,31 @@ FOUND_CASES = {
         1e-4,
         100.0,
     ),
+    # Degree 5, rational, a control point repeated five times: between two grid samples the
+    # curvature rises to 22 /mm, falls to 1 and rises to 10.3 /mm again. The peak search
+    # followed the higher peak alone; the other was passed at the feed of a sample 11 µm
+    # before it, 1.053 delta (planner.envelope._other_peaks).
+    "two curvature peaks between two grid samples": (
+        NurbsCurve.from_arrays(
+            5,
+            np.array(
+                [
+                    *([19.20088, -21.674313], [-0.561773, 23.770084], [0, 0]),
+                    *([-0.561773, 23.770084], [1.5, 1.5], *[[0.99999, 25.652178]] * 5),
+                    *([0, 0], [4.530916, 4.0], [0, 0]),
+                ]
+            ),
+            np.array([*[0] * 6, 0.05, 0.3, 0.324822, 0.615552, 0.719095, 0.932763, 0.95, *[1] * 6]),
+            np.array(
+                [
+                    *(2.13659, 0.9, 0.3, 1.5, 1.0, 2.295751, 0.685817),
+                    *(2.621505, 2.585795, 1.9, 2.06734, 1.315071, 2.965672),
+                ]
+            ),
+        ),
+        1e-4,
+        100.0,
+    ),
     # Degree 4 up and down the y axis, its last two control points one: C'(1) = 0, and the
     # curve reverses 0.019 mm before its end, inside the grid's last interval. Its tangent
     # was compared with the end's, which has none: the reversal went unseen and was passed at
