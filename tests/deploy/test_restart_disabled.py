@@ -19,6 +19,7 @@ pytestmark = pytest.mark.slow
 SOFTMOTION = Path(sys.executable).with_name("softmotion")
 PAPER = Path(__file__).resolve().parents[2] / "configs" / "curves" / "paper.yaml"
 BOOT_TIMEOUT_S = 30.0
+CHILDREN_EXIT_TIMEOUT_S = 30.0
 
 
 def hmi(port: int, *action: str) -> subprocess.CompletedProcess[str]:
@@ -36,6 +37,7 @@ def start_machine(config: Path, port: int, log: Path) -> subprocess.Popen:
         [str(SOFTMOTION), "run", "--config", str(config)],
         stdout=log.open("a"),
         stderr=subprocess.STDOUT,
+        start_new_session=True,  # its processes in a group of their own, as in a service's cgroup
     )
     deadline = time.monotonic() + BOOT_TIMEOUT_S
     while hmi(port, "status").returncode != 0:
@@ -43,6 +45,26 @@ def start_machine(config: Path, port: int, log: Path) -> subprocess.Popen:
         assert time.monotonic() < deadline, f"no answer on port {port}:\n{log.read_text()}"
         time.sleep(0.2)
     return process
+
+
+def wait_until_group_gone(group: int, timeout_s: float) -> None:
+    """Wait until no live process is left in process group ``group``, as systemd waits for a
+    service's cgroup to empty before it restarts the service."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        alive = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                # After "(comm)": state, ppid, pgrp.
+                state, _, pgrp = stat.read_text().rpartition(")")[2].split()[:3]
+            except OSError:
+                continue  # gone while we looked
+            if int(pgrp) == group and state != "Z":
+                alive.append(stat.parent.name)
+        if not alive:
+            return
+        assert time.monotonic() < deadline, f"processes {alive} of the killed runtime still run"
+        time.sleep(0.1)
 
 
 def machine_state(port: int) -> tuple[str, list[str]]:
@@ -70,6 +92,9 @@ def test_a_runtime_killed_while_moving_restarts_disabled(tmp_path: Path) -> None
         assert state == "MOVING" and set(drives) == {"OPERATION_ENABLED"}, (state, drives)
         process.send_signal(signal.SIGKILL)  # a crash: no controlled stop, nothing cleaned up
         process.wait(10)
+        # Its children end on their own (they stop on the path and exit when the supervisor
+        # dies); until then the old HMI process may still answer on the port.
+        wait_until_group_gone(process.pid, CHILDREN_EXIT_TIMEOUT_S)
 
         process = start_machine(config, port, log)
         state, drives = machine_state(port)
