@@ -38,6 +38,7 @@ import numpy as np
 from planner.arclength import ArcLengthTable
 from planner.dilation import reach_lowered
 from planner.feed import (
+    binding_curvature,
     chord_deficit_change_feed,
     curvature_jump_feed,
     geometric_feed_limits,
@@ -69,8 +70,9 @@ MIN_FEED_MM_S = 1e-6
 CORNER_COS_TOL = 1e-12
 #: Ternary-search steps locating a cusp inside a span.
 CUSP_SEARCH_STEPS = 60
-#: |C'| where a tangent reverses, relative to the largest |C'| on the chunk's grid, below which
-#: the reversal is a cusp (a stop); the search ends about 1e-11 from a true cusp.
+#: |C'| relative to the largest |C'| on the chunk's grid at or below which the curve is still
+#: (round-off): a reversal there is a cusp (a stop; the search ends about 1e-11 from a true
+#: cusp), and its curvature is noise, not a peak to search.
 CUSP_SPEED_RTOL = 1e-6
 #: Points, at halving distances, at which a grid interval is searched for a reversal towards
 #: an end where C' = 0 (the last is 2^-40 of the interval from it).
@@ -78,6 +80,8 @@ STILL_END_HALVINGS = 40
 #: A near-cusp is a tip, not a stop, where its feed limit is above this many singular floors
 #: (planner.feed.singular_floor_feed).
 TIP_FLOOR_RATIO = 4.0
+#: Passes that look for curvature maxima the refined samples show and no search found yet.
+MISSED_PEAK_PASSES = 3
 #: Rounds and points per round of the search of a curvature maximum between its grid
 #: neighbours (each round shrinks the bracket to 2 / (points + 1) of it).
 PEAK_SEARCH_STEPS, PEAK_SEARCH_POINTS = 6, 9
@@ -175,10 +179,12 @@ def _pointing_apart(
     return u[rows[:-1][turn]], u[rows[1:][turn]]
 
 
-def _other_peaks(k: np.ndarray, best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _other_peaks(
+    k: np.ndarray, best: np.ndarray, least_kappa: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns of the local maxima of each row of ``k`` besides its highest
-    (column ``best``) that rise more than ``PEAK_FLAT_RTOL`` above the lowest value between
-    them and it.
+    (column ``best``), above ``least_kappa``, that rise more than ``PEAK_FLAT_RTOL`` above the
+    lowest value between them and it.
 
     A grid interval can hold two peaks: a degree-5 curve's curvature rose to 22 /mm, fell to 1
     and rose to 10 /mm between two grid samples; the search followed the higher peak alone, and
@@ -202,9 +208,17 @@ def _other_peaks(k: np.ndarray, best: np.ndarray) -> tuple[np.ndarray, np.ndarra
     between[:, :-1] = np.where(left[:, :-1], towards_left[:, 1:], np.inf)
     between[:, 1:] = np.where(right[:, 1:], towards_right[:, :-1], between[:, 1:])
     with np.errstate(invalid="ignore"):
-        other = local & (left | right) & (k > between * (1.0 + PEAK_FLAT_RTOL))
+        other = local & (left | right) & (k > least_kappa) & (k > between * (1.0 + PEAK_FLAT_RTOL))
     rows, found = np.nonzero(other)
     return several[rows], found
+
+
+def _trios(u: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+    """Each peak and two neighbours a tenth of the sample interval around it away, so that the
+    limit, interpolated linearly, rises from the tip as the curvature falls."""
+    i = np.clip(np.searchsorted(u, peaks), 1, len(u) - 1)
+    width = 0.1 * (u[i] - u[i - 1])
+    return np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1]).ravel()
 
 
 def _tight_change(v: np.ndarray) -> np.ndarray:
@@ -272,6 +286,8 @@ class FeedEnvelope:
         self._planning_limits = replace(
             limits, chord_error_mm=limits.chord_error_mm * (1.0 - CHORD_MARGIN)
         )
+        # Curvature peaks below this bind no plan: the search follows no other peaks there.
+        self._binding_kappa = binding_curvature(self._planning_limits, period_s, self._vcap_mm_s)
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._joined_last: tuple[tuple[int, int], tuple[np.ndarray, np.ndarray]] | None = None
 
@@ -369,15 +385,11 @@ class FeedEnvelope:
             kappa[knot_rows[corner]] = np.inf
         samples = (u, v, kappa)
         extras = []
-        cusps, tips = self._reversals(u, d1)
-        peaks = np.concatenate([self._curvature_maxima(u, kappa, hidden), tips])
+        still_mm = CUSP_SPEED_RTOL * np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
+        cusps, tips = self._reversals(u, d1, still_mm)
+        peaks = np.concatenate([self._curvature_maxima(u, kappa, hidden, still_mm), tips])
         if peaks.size:
-            # The tip and two neighbours a tenth of the grid interval away, so that the linear
-            # interpolation of the limit rises from the tip as the curvature falls.
-            i = np.clip(np.searchsorted(u, peaks), 1, len(u) - 1)
-            width = 0.1 * (u[i] - u[i - 1])
-            trio = np.clip(np.stack([peaks - width, peaks, peaks + width], axis=1), u[0], u[-1])
-            extras.append(self._sampled(trio.ravel()))
+            extras.append(self._sampled(_trios(u, peaks)))
         aligned = self._axis_alignments(u, d1)
         if aligned.size:
             extras.append(self._sampled(aligned))
@@ -389,8 +401,21 @@ class FeedEnvelope:
         # Halved where the limit changes fast between any two samples, the tips' among them: a
         # grid interval whose ends are alike can hold a tip, and the limit is concave on either
         # side of it (interpolated linearly from the tip to the grid, it measured 1.02 delta).
+        grid = samples[0]
         u, v, kappa = self._merged(samples, extras)
         u, v, kappa = self._merged((u, v, kappa), [self._tight_midpoints(u, v)])
+        for _ in range(MISSED_PEAK_PASSES):
+            missed = self._missed_maxima(u, v, kappa, peaks, grid, still_mm)
+            if missed.size == 0:
+                break
+            peaks = np.concatenate([peaks, missed])
+            u, v, kappa = self._merged((u, v, kappa), [self._sampled(_trios(u, missed))])
+            # Halved around each new peak alone: the rest of the samples are as halved before.
+            at = np.searchsorted(u, missed)
+            near = [slice(max(i - 2, 0), min(i + 3, u.size)) for i in np.unique(at).tolist()]
+            u, v, kappa = self._merged(
+                (u, v, kappa), [self._tight_midpoints(u[part], v[part]) for part in near]
+            )
         s = np.maximum.accumulate(self._arc.s_of_u(u))
         # Samples that round to one arc length (next to a corner) become one, with the lowest
         # limit; limits below MIN_FEED_MM_S are a stop.
@@ -475,7 +500,9 @@ class FeedEnvelope:
         width = (u[i] - u[i - 1])[:, None]
         return np.clip(peaks[:, None] + width * AXIS_PEAK_OFFSETS, u[0], u[-1]).ravel()
 
-    def _reversals(self, u: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _reversals(
+        self, u: np.ndarray, d1: np.ndarray, still_mm: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Parameters inside a span where the tangent reverses: (cusps, tips).
 
         Found where consecutive samples' tangents (``d1``, C' at u) point apart (turn by more
@@ -483,14 +510,13 @@ class FeedEnvelope:
         is a stop.
         A near-cusp is a tip the plan passes at the feed its radius allows (at the bench's
         limits about 2.5 mm/s for a 0.02 mm radius, where a stop cost some 30 ms), when that is
-        clear: |C'| there above round-off (``CUSP_SPEED_RTOL``, against the chunk's largest
-        |C'|: in a span of zero length the ends' |C'| is round-off too), and its feed limit
+        clear: |C'| there above round-off (``still_mm``: in a span of zero length the ends'
+        |C'| is round-off too), and its feed limit
         above ``TIP_FLOOR_RATIO`` times the singular floor. A reversal of a rational curve
         nearly on a line has a radius of 1e-11 mm, far too narrow for the curvature maxima's
         search: taken for a tip, it was passed at speed (4.7 A, 117 J).
         """
-        scale = np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
-        lo, hi = self._turns(u, d1, CUSP_SPEED_RTOL * scale)
+        lo, hi = self._turns(u, d1, still_mm)
         if lo.size == 0:
             return np.empty(0), np.empty(0)
 
@@ -501,7 +527,7 @@ class FeedEnvelope:
         mid = mid[(mid > lo) & (mid < hi)]
         _, v, d1_mid, _ = self._limit(mid)
         floor = singular_floor_feed(self._planning_limits, self._T)
-        tip = (np.linalg.norm(d1_mid, axis=1) > CUSP_SPEED_RTOL * scale) & (
+        tip = (np.linalg.norm(d1_mid, axis=1) > still_mm) & (
             _lower_part(v) > TIP_FLOOR_RATIO * floor
         )
         return mid[~tip], mid[tip]
@@ -574,7 +600,9 @@ class FeedEnvelope:
             return np.empty(0), np.empty((0, 2)), np.empty(0)
         return tuple(np.concatenate(column) for column in zip(*added, strict=True))
 
-    def _curvature_maxima(self, u: np.ndarray, kappa: np.ndarray, hidden: np.ndarray) -> np.ndarray:
+    def _curvature_maxima(
+        self, u: np.ndarray, kappa: np.ndarray, hidden: np.ndarray, still_mm: float
+    ) -> np.ndarray:
         """Parameters of the interior local maxima of curvature, by a shrinking grid search.
 
         Each grid maximum brackets one between its neighbours, and each grid interval in
@@ -592,13 +620,66 @@ class FeedEnvelope:
         peak = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
         if peak.size + hidden.size == 0:
             return np.empty(0)
-        lo = np.concatenate([u[peak - 1], u[hidden]])
-        hi = np.concatenate([u[peak + 1], u[hidden + 1]])
+        return self._peak_search(
+            np.concatenate([u[peak - 1], u[hidden]]),
+            np.concatenate([u[peak + 1], u[hidden + 1]]),
+            still_mm,
+        )
+
+    def _missed_maxima(
+        self,
+        u: np.ndarray,
+        v: np.ndarray,
+        kappa: np.ndarray,
+        peaks: np.ndarray,
+        grid: np.ndarray,
+        still_mm: float,
+    ) -> np.ndarray:
+        """Curvature maxima near the local maxima of the refined samples (``u``, ``v``,
+        ``kappa``) that no peak found so far (``peaks``) lies next to, where the limit is below
+        any feed a plan of this path may use and |C'| above ``still_mm``: the highest in each
+        interval of the ``grid``. Next to a cusp the refined samples' curvature is round-off
+        noise with maxima by the thousand; one search per grid interval and pass bounds the
+        work there.
+
+        The grid's own test can miss a peak: a degree-5 curve's curvature fell from 20.6 /mm at
+        its start to 0.3, rose to 2.85 and fell to 1.93 at the next grid sample; with both ends
+        falling and their slopes shallow against the drop, the cubic through them falls all
+        the way. The samples halved in where the limit changes fast showed the dip and the rise,
+        but the plan crossed the peak at the feed of its neighbours: 1.42 delta.
+        """
+        k0, k1, k2 = kappa[:-2], kappa[1:-1], kappa[2:]
+        i = np.flatnonzero((k1 > k0) & (k1 >= k2) & np.isfinite(k0 + k1 + k2)) + 1
+        if i.size == 0:
+            return np.empty(0)
+        i = i[_lower_part(v[i]) < self._vcap_mm_s]
+        known = np.sort(peaks)
+        if known.size and i.size:
+            nearest = np.searchsorted(known, u[i - 1]).clip(max=known.size - 1)
+            i = i[~((known[nearest] >= u[i - 1]) & (known[nearest] <= u[i + 1]))]
+        if i.size:
+            i = i[np.linalg.norm(self._curve.evaluate(u[i], order=1)[1], axis=1) > still_mm]
+        if i.size == 0:
+            return np.empty(0)
+        interval = np.searchsorted(grid, u[i], side="right") - 1
+        order = np.lexsort((-kappa[i], interval))
+        i, interval = i[order], interval[order]
+        i = i[np.concatenate([[True], interval[1:] != interval[:-1]])]
+        return self._peak_search(u[i - 1], u[i + 1], still_mm)
+
+    def _peak_search(self, lo: np.ndarray, hi: np.ndarray, still_mm: float) -> np.ndarray:
+        """The curvature maxima in brackets [lo, hi], as :meth:`_curvature_maxima` searches
+        them; where |C'| is at most ``still_mm`` the curvature counts as infinite (round-off,
+        not a peak)."""
         inner = np.linspace(0.0, 1.0, PEAK_SEARCH_POINTS + 2)
         found = []
+        # Brackets an other peak opened open none of their own: next to a cusp the curvature
+        # is round-off noise well above |C'|'s round-off, and following every wiggle of it
+        # turned 9 brackets into 9,505 within the search's rounds.
+        opened_by_other = np.zeros(lo.size, dtype=bool)
         for _ in range(PEAK_SEARCH_STEPS):
             x = lo[:, None] + (hi - lo)[:, None] * inner
-            k = self._curve.curvature(x[:, 1:-1].ravel()).reshape(len(lo), -1)
+            k = self._curve.curvature(x[:, 1:-1].ravel(), still_mm).reshape(len(lo), -1)
             k = np.where(np.isfinite(k), k, np.inf)
             rows = np.arange(len(lo))
             best = np.argmax(k, axis=1)
@@ -606,9 +687,13 @@ class FeedEnvelope:
             # resolved (the limit no longer changes).
             flat = k.min(axis=1) >= k[rows, best] * (1.0 - PEAK_FLAT_RTOL)
             found.append(x[rows[flat], best[flat] + 1])
-            other_rows, other = _other_peaks(k, best)
-            rows = np.concatenate([rows[~flat], other_rows])
+            first = np.flatnonzero(~opened_by_other)
+            other_rows, other = _other_peaks(k[first], best[first], self._binding_kappa)
+            rows = np.concatenate([rows[~flat], first[other_rows]])
             i = np.concatenate([best[~flat], other])
+            opened_by_other = np.concatenate(
+                [opened_by_other[~flat], np.ones(other_rows.size, dtype=bool)]
+            )
             lo, hi = x[rows, i], x[rows, i + 2]
             if rows.size == 0:
                 break

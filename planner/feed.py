@@ -49,6 +49,8 @@ CHORD_ACCEL_FRACTION = 0.01
 DEFICIT_CHANGE_ROUNDS = 4
 #: Fraction of J T³ a step may be long wherever the geometry is (see singular_floor_feed).
 FLOOR_JERK_FRACTION = 0.05
+#: Curvatures (1/mm) binding_curvature looks at: 2.3 % apart, radii from a pm to a Gm.
+BINDING_CURVATURE_GRID = np.logspace(-12.0, 12.0, 2401)
 
 
 def chord_error_feed(kappa: np.ndarray, delta: float, T: float) -> np.ndarray:
@@ -253,6 +255,28 @@ def geometric_feed_limits(
         v[~moving | np.isnan(v)] = 0.0
         parts.append(v)
     return kappa, parts[0], parts[1]
+
+
+def binding_curvature(limits: Limits, T: float, feed_mm_s: float) -> float:
+    """A curvature (1/mm) below which no limit that tightens with the curvature (chord error,
+    chord deficit, normal and axis accelerations) holds the feed below ``feed_mm_s``: a peak
+    of lower curvature binds no plan capped at that feed.
+
+    Taken on a grid of BINDING_CURVATURE_GRID curvatures, one grid step below the first that
+    binds (each limit falls as the curvature grows; the axis accelerations are bounded by
+    the whole curvature vector's).
+    """
+    kappa = BINDING_CURVATURE_GRID
+    feed = np.minimum(
+        chord_error_feed(kappa, limits.chord_error_mm, T),
+        chord_deficit_feed(kappa, limits.jmax_mm_s3, T),
+    )
+    if limits.normal_accel_mm_s2 is not None:
+        feed = np.minimum(feed, normal_accel_feed(kappa, limits.normal_accel_mm_s2))
+    if limits.axis_amax_mm_s2 is not None:
+        feed = np.minimum(feed, np.sqrt(0.5 * min(limits.axis_amax_mm_s2) / kappa))
+    binding = np.flatnonzero(feed < feed_mm_s)
+    return float(kappa[binding[0] - 1]) if binding.size and binding[0] > 0 else 0.0
 
 
 def singular_floor_feed(limits: Limits, T: float) -> float:

@@ -276,11 +276,13 @@ class NurbsCurve:
         """C(u) as a (dimension,) array in mm."""
         return self.evaluate(u)[0, 0]
 
-    def curvature(self, u: ArrayLike) -> np.ndarray:
+    def curvature(self, u: ArrayLike, still_speed: float = 0.0) -> np.ndarray:
         """Curvature kappa(u) = |C' x C''| / |C'|^3 in 1/mm, one value per parameter.
 
         Where C'(u) = 0 (a cusp or a sharp corner made by repeated control points) the radius of
-        curvature is zero and kappa is ``inf``.
+        curvature is zero and kappa is ``inf``; also where |C'| is at most ``still_speed`` (mm
+        per unit of u): a rational curve leaves round-off there, not 0, and its curvature is
+        noise.
         """
         _, d1, d2 = self.evaluate(u, order=2)
         if self.dimension == 2:
@@ -289,7 +291,7 @@ class NurbsCurve:
             cross = np.linalg.norm(np.cross(d1, d2), axis=1)
         speed = np.linalg.norm(d1, axis=1)
         kappa = np.full(speed.shape, math.inf)
-        moving = speed > 0.0
+        moving = speed > still_speed
         with np.errstate(over="ignore", divide="ignore"):  # a speed near 0 gives kappa -> inf
             kappa[moving] = cross[moving] / speed[moving] ** 3
         return kappa

@@ -325,6 +325,23 @@ FOUND_CASES = {
         1e-3,
         100.0,
     ),
+    # A degree-5 Bézier whose curvature falls from 20.6 /mm at its start to 0.3, rises to
+    # 2.85 /mm at u = 0.045 and falls to 1.93 at the first grid sample: both grid ends fall, and
+    # the cubic through their shallow slopes too. The samples halved in where the limit changes
+    # fast showed the dip and the rise, but no search was run there: the plan crossed the peak
+    # at the feed of its neighbours, 1.42 delta (planner.envelope._missed_maxima).
+    "a curvature peak the grid's tests do not see": (
+        NurbsCurve.from_arrays(
+            5,
+            np.array(
+                [[0, 0], [0, 0.3], [2.319068, 0], [-14.653651, 30], [0.3, 0], [-8.013223, 0]]
+            ),
+            np.array([0] * 6 + [1] * 6),
+            np.array([0.3, 0.3, 0.3, 0.3, 1.268276, 2.578814]),
+        ),
+        1e-4,
+        100.0,
+    ),
 }
 
 
