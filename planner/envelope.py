@@ -398,10 +398,10 @@ class FeedEnvelope:
             stops = (cusps, np.zeros((cusps.size, 2)), np.full(cusps.size, np.inf))
             samples = self._merged(samples, [stops])
         extras.append(self._sampled(self._corner_grid(samples[0], _lower_part(samples[1]))))
+        grid = samples[0]
         # Halved where the limit changes fast between any two samples, the tips' among them: a
         # grid interval whose ends are alike can hold a tip, and the limit is concave on either
         # side of it (interpolated linearly from the tip to the grid, it measured 1.02 delta).
-        grid = samples[0]
         u, v, kappa = self._merged(samples, extras)
         u, v, kappa = self._merged((u, v, kappa), [self._tight_midpoints(u, v)])
         for _ in range(MISSED_PEAK_PASSES):
@@ -511,8 +511,8 @@ class FeedEnvelope:
         A near-cusp is a tip the plan passes at the feed its radius allows (at the bench's
         limits about 2.5 mm/s for a 0.02 mm radius, where a stop cost some 30 ms), when that is
         clear: |C'| there above round-off (``still_mm``: in a span of zero length the ends'
-        |C'| is round-off too), and its feed limit
-        above ``TIP_FLOOR_RATIO`` times the singular floor. A reversal of a rational curve
+        |C'| is round-off too), and its feed limit above ``TIP_FLOOR_RATIO`` times the
+        singular floor. A reversal of a rational curve
         nearly on a line has a radius of 1e-11 mm, far too narrow for the curvature maxima's
         search: taken for a tip, it was passed at speed (4.7 A, 117 J).
         """
