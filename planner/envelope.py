@@ -357,6 +357,12 @@ class FeedEnvelope:
         knot_rows = np.cumsum(counts)[:-1]
         below = np.nextafter(u[knot_rows], -np.inf)
         kappa, v, d1, slope = self._limit(np.concatenate([u, below]), slopes=True)
+        # Where the curve is still (repeated control points: C' is round-off, not 0), its
+        # curvature is noise: a stop, as where C' = 0. Passed at the feed of its noise, a
+        # still knot where a degree-5 curve turned by 15 degrees measured 4.3 delta.
+        speed = np.linalg.norm(d1, axis=1)
+        still_mm = CUSP_SPEED_RTOL * speed.max()
+        v[speed <= still_mm], kappa[speed <= still_mm] = 0.0, np.inf
         k_left, v_left, d_left = kappa[u.size :], v[u.size :], d1[u.size :]
         kappa, v, d1 = kappa[: u.size], v[: u.size], d1[: u.size]
         # The curvature and its slope at the end of each grid interval seen from inside it (the
@@ -385,7 +391,6 @@ class FeedEnvelope:
             kappa[knot_rows[corner]] = np.inf
         samples = (u, v, kappa)
         extras = []
-        still_mm = CUSP_SPEED_RTOL * np.sqrt(np.max(np.sum(d1 * d1, axis=1)))
         cusps, tips = self._reversals(u, d1, still_mm)
         peaks = np.concatenate([self._curvature_maxima(u, kappa, hidden, still_mm), tips])
         if peaks.size:

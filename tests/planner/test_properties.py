@@ -342,6 +342,21 @@ FOUND_CASES = {
         1e-4,
         100.0,
     ),
+    # Up the y axis into a control point repeated five times (degree 5) and off to the right:
+    # C' at the knot is 5e-30, not 0 (the point is 1e-13 off the origin, the weights differ),
+    # and C' x C'' is exactly 0, so the curvature there came out 0 and the limit vmax. The
+    # corner between the two straight spans was passed at speed: 8.0 delta, 2.7 J. Shrunk from
+    # a random curve (vmax 20, A 5000) that measured 4.3 delta; a still sample is a stop now.
+    "a still knot where the curve turns": (
+        NurbsCurve.from_arrays(
+            5,
+            np.array([[0, -26.5], *[[0, 1e-13]] * 5, [6.6, 24.3], [-17.5, 1.5]]),
+            np.array([0] * 6 + [0.4, 0.6] + [1] * 6),
+            np.array([1, 2.9, 1.9, 3, 1.6, 1.8, 0.3, 1.3]),
+        ),
+        1e-3,
+        100.0,
+    ),
 }
 
 
