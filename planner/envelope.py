@@ -42,6 +42,7 @@ from planner.feed import (
     chord_deficit_change_feed,
     curvature_jump_feed,
     geometric_feed_limits,
+    normal_cosine,
     singular_floor_feed,
 )
 from planner.nurbs import PARAMETER_RESOLUTION_MM, NurbsCurve
@@ -356,15 +357,16 @@ class FeedEnvelope:
         # A tangent that turns at a knot is a sharp corner: the feed must come to 0 there.
         knot_rows = np.cumsum(counts)[:-1]
         below = np.nextafter(u[knot_rows], -np.inf)
-        kappa, v, d1, slope = self._limit(np.concatenate([u, below]), slopes=True)
+        kappa, v, (_, d1, d2, d3) = self._limit(np.concatenate([u, below]), order=3)
+        slope = curvature_slope(d1, d2, d3)
         # Where the curve is still (repeated control points: C' is round-off, not 0), its
         # curvature is noise: a stop, as where C' = 0. Passed at the feed of its noise, a
         # still knot where a degree-5 curve turned by 15 degrees measured 4.3 delta.
         speed = np.linalg.norm(d1, axis=1)
         still_mm = CUSP_SPEED_RTOL * speed.max()
         v[speed <= still_mm], kappa[speed <= still_mm] = 0.0, np.inf
-        k_left, v_left, d_left = kappa[u.size :], v[u.size :], d1[u.size :]
-        kappa, v, d1 = kappa[: u.size], v[: u.size], d1[: u.size]
+        k_left, v_left, d_left, d2_left = kappa[u.size :], v[u.size :], d1[u.size :], d2[u.size :]
+        kappa, v, d1, d2 = kappa[: u.size], v[: u.size], d1[: u.size], d2[: u.size]
         # The curvature and its slope at the end of each grid interval seen from inside it (the
         # left side of a knot). A peak hides between two samples where the curvature rises at
         # the first and falls at the second, or where its cubic through them peaks: between two
@@ -379,7 +381,8 @@ class FeedEnvelope:
         )
         if knot_rows.size:
             v[knot_rows] = np.minimum(v[knot_rows], v_left)
-            jump = curvature_jump_feed(k_left, kappa[knot_rows], self._limits, self._T)
+            bend = normal_cosine(d_left, d2_left, d1[knot_rows], d2[knot_rows])
+            jump = curvature_jump_feed(k_left, kappa[knot_rows], self._limits, self._T, bend)
             v[knot_rows, 1] = np.minimum(v[knot_rows, 1], jump)
             kappa[knot_rows] = np.maximum(kappa[knot_rows], k_left)
             d_right = d1[knot_rows]
@@ -437,23 +440,20 @@ class FeedEnvelope:
         )
 
     def _limit(
-        self, u: np.ndarray, *, slopes: bool = False
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """kappa, v_limit, C' and C'' at u; with ``slopes``, dkappa/du in place of C''.
+        self, u: np.ndarray, *, order: int = 2
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """kappa, v_limit and the curve's derivatives up to ``order`` (at least 2) at u.
         v_limit has two columns: the chord-error feed and every other limit
         (:func:`planner.feed.geometric_feed_limits`), the latter dilated alone."""
-        if u.size == 0:
-            d = np.empty((0, self._curve.dimension))
-            return np.empty(0), np.empty((0, 2)), d, d
-        ders = self._curve.evaluate(u, order=3 if slopes else 2)
-        d1, d2 = ders[1], ders[2]
-        kappa, v_chord, v_other = geometric_feed_limits(d1, d2, self._planning_limits, self._T)
-        v = np.stack([v_chord, v_other], axis=1)
-        return kappa, v, d1, curvature_slope(d1, d2, ders[3]) if slopes else d2
+        ders = self._curve.evaluate(u, order=order)
+        kappa, v_chord, v_other = geometric_feed_limits(
+            ders[1], ders[2], self._planning_limits, self._T
+        )
+        return kappa, np.stack([v_chord, v_other], axis=1), ders
 
     def _sampled(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Samples (u, v_limit, kappa) at u."""
-        kappa, v, _, _ = self._limit(u)
+        kappa, v, _ = self._limit(u)
         return u, v, kappa
 
     @staticmethod
@@ -530,7 +530,7 @@ class FeedEnvelope:
 
         mid = ternary_minima(lo, hi, speed, CUSP_SEARCH_STEPS)
         mid = mid[(mid > lo) & (mid < hi)]
-        _, v, d1_mid, _ = self._limit(mid)
+        _, v, (_, d1_mid, _) = self._limit(mid)
         floor = singular_floor_feed(self._planning_limits, self._T)
         tip = (np.linalg.norm(d1_mid, axis=1) > still_mm) & (
             _lower_part(v) > TIP_FLOOR_RATIO * floor

@@ -16,12 +16,15 @@ Not in the paper, always on:
   0.05 mm (0.024 mm: 2.4 mm/s against 3.5 mm/s of eq. (3) at delta = 1 µm); without it a tip
   of radius 0.03 mm at delta = 10 µm measured 4 J on the setpoints. Where the curvature jumps
   at a knot (degree 2, repeated knots), eps changes within one step: Δ²eps is at most
-  |kappa_b² - kappa_a²| V² T² / 24, which gives v <= (24 f J / |kappa_b² - kappa_a²|)^(1/3)
-  (:func:`curvature_jump_feed`); without it a straight line turning into a 1 mm radius at
-  delta = 10 µm measured 1.06 J. Where the curvature changes faster than a tip's (its flanks,
-  or a curvature falling to 0 within its radius), Δ²eps is taken from kappa² at the steps
-  either side of each sample of the envelope (:func:`chord_deficit_change_feed`); without it
-  such a curve measured 1.09 J.
+  K V² T² / 24 with K = |kappa_b² - kappa_a²| + 3/4 kappa_a kappa_b (1 - cos phi), phi the
+  angle between the normals on either side (the tangent's variance over a step straddling the
+  knot; an S-bend of equal radii, phi = 180°, has no jump of |kappa| at all), which gives
+  v <= (24 f J / K)^(1/3) (:func:`curvature_jump_feed`); without it a straight line turning
+  into a 1 mm radius at delta = 10 µm measured 1.06 J, and with the first term alone a 3D
+  degree-2 curve whose normal turned at a knot 1.065 J. Where the curvature changes faster
+  than a tip's (its flanks, or a curvature falling to 0 within its radius), Δ²eps is taken
+  from kappa² at the steps either side of each sample of the envelope
+  (:func:`chord_deficit_change_feed`); without it such a curve measured 1.09 J.
 Not in the paper (all off unless configured, so the paper's case is reproduced exactly):
 - normal acceleration: v² kappa <= A_n, so v <= sqrt(A_n / kappa);
 - per-axis velocity: |v t_k| <= V_k, so v <= V_k / |t_k| (t the unit tangent);
@@ -88,18 +91,41 @@ def chord_deficit_feed(kappa: np.ndarray, J: float, T: float) -> np.ndarray:
     return np.where(kappa * gradual * T < np.sqrt(0.5), gradual, abrupt)
 
 
-def curvature_jump_feed(
-    kappa_a: np.ndarray, kappa_b: np.ndarray, limits: Limits, T: float
+def normal_cosine(
+    d1_a: np.ndarray, d2_a: np.ndarray, d1_b: np.ndarray, d2_b: np.ndarray
 ) -> np.ndarray:
-    """Feed across a jump of the curvature from kappa_a to kappa_b whose chord deficit adds at
-    most CHORD_JERK_FRACTION J of jerk and CHORD_ACCEL_FRACTION A of acceleration (module
+    """Cosine of the angle between the principal normals of two rows of derivatives (C', C''
+    each (m, dim)); 1 where either side has none (straight, or still)."""
+
+    def normal(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tangent = d1 / np.linalg.norm(d1, axis=1, keepdims=True)
+            n = d2 - np.sum(d2 * tangent, axis=1, keepdims=True) * tangent
+            return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    cos = np.sum(normal(d1_a, d2_a) * normal(d1_b, d2_b), axis=1)
+    return np.where(np.isfinite(cos), np.clip(cos, -1.0, 1.0), 1.0)
+
+
+def curvature_jump_feed(
+    kappa_a: np.ndarray,
+    kappa_b: np.ndarray,
+    limits: Limits,
+    T: float,
+    normal_cos: np.ndarray | float = 1.0,
+) -> np.ndarray:
+    """Feed across a jump of the curvature from kappa_a to kappa_b, with ``normal_cos`` the
+    cosine of the angle between the normals either side, whose chord deficit adds at most
+    CHORD_JERK_FRACTION J of jerk and CHORD_ACCEL_FRACTION A of acceleration (module
     docstring); inf where it does not jump, and never below :func:`singular_floor_feed` (a
     jump to a near-cusp's curvature would otherwise have the motion creep there)."""
     budget = min(
         CHORD_JERK_FRACTION * limits.jmax_mm_s3, CHORD_ACCEL_FRACTION * limits.amax_mm_s2 / T
     )
     with np.errstate(invalid="ignore", divide="ignore"):  # inf - inf: a corner, a stop anyway
-        jump = np.abs(np.square(kappa_b) - np.square(kappa_a))
+        both = kappa_a * kappa_b
+        bend = np.where(np.isfinite(both), 0.75 * both * (1.0 - normal_cos), 0.0)
+        jump = np.abs(np.square(kappa_b) - np.square(kappa_a)) + bend
         feed = np.cbrt(24.0 * budget / jump)
     # Not np.nan_to_num: it would also turn inf into the largest float, and the envelope's
     # linear interpolation from there overflows to -inf.

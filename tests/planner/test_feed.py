@@ -16,6 +16,7 @@ from planner.feed import (
     curvature_jump_feed,
     geometric_feed_limits,
     normal_accel_feed,
+    normal_cosine,
     tangential_accel_limit,
 )
 from planner.types import Limits
@@ -70,6 +71,21 @@ def test_no_curvature_jump_leaves_the_feed_unlimited():
     assert curvature_jump_feed(np.array([0.0]), np.array([1.0]), limits, T)[0] == pytest.approx(
         (24 * CHORD_JERK_FRACTION * 20000.0) ** (1 / 3)
     )
+
+
+def test_an_s_bend_at_a_knot_limits_the_feed_without_a_jump_of_the_curvature():
+    # Radius 2 mm either side, normals opposite (a planar S): the chord deficit of a step across
+    # the knot is a quarter of its neighbours', so the deficit still changes within a step.
+    limits = Limits(100.0, 1000.0, 20000.0, 1e-3)
+    kappa = np.array([0.5])
+    same_side = curvature_jump_feed(kappa, kappa, limits, T, np.array([1.0]))
+    s_bend = curvature_jump_feed(kappa, kappa, limits, T, np.array([-1.0]))
+    assert same_side[0] == math.inf
+    assert s_bend[0] == pytest.approx((24 * CHORD_JERK_FRACTION * 20000.0 / 0.375) ** (1 / 3))
+    # A planar S from the derivatives: the normals of y = x² and y = -x² at the origin.
+    tangent, up, down = np.array([[1.0, 0.0]]), np.array([[0.0, 2.0]]), np.array([[0.0, -2.0]])
+    assert normal_cosine(tangent, up, tangent, down)[0] == pytest.approx(-1.0)
+    assert normal_cosine(tangent, up, tangent, np.zeros((1, 2)))[0] == 1.0  # a straight side
 
 
 def test_normal_acceleration_limit():

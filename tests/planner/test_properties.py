@@ -333,9 +333,7 @@ FOUND_CASES = {
     "a curvature peak the grid's tests do not see": (
         NurbsCurve.from_arrays(
             5,
-            np.array(
-                [[0, 0], [0, 0.3], [2.319068, 0], [-14.653651, 30], [0.3, 0], [-8.013223, 0]]
-            ),
+            np.array([[0, 0], [0, 0.3], [2.319068, 0], [-14.653651, 30], [0.3, 0], [-8.013223, 0]]),
             np.array([0] * 6 + [1] * 6),
             np.array([0.3, 0.3, 0.3, 0.3, 1.268276, 2.578814]),
         ),
@@ -355,6 +353,26 @@ FOUND_CASES = {
             np.array([1, 2.9, 1.9, 3, 1.6, 1.8, 0.3, 1.3]),
         ),
         1e-3,
+        100.0,
+    ),
+    # Degree 2 in space: at the knot u = 0.857 the curvature goes from 0.15 to 0.19 /mm and
+    # its normal turns. The chord deficit's change was bounded by the jump of |kappa| alone;
+    # a step across the knot has less deficit than either neighbour (the tangent turns two
+    # ways), and the setpoints measured 1.065 J (planner.feed.curvature_jump_feed).
+    "a knot where the curvature's normal turns": (
+        NurbsCurve.from_arrays(
+            2,
+            np.array(
+                [
+                    *([0, -28.559, 0.001], [12.94, -27.871, -17.396]),
+                    *[[4.411, 0, 2.038]] * 3,
+                    *([-1.769, -17.396, 0], [-20.1, -27.871, -19.423], [0, -28.559, 0.001]),
+                ]
+            ),
+            np.array([0, 0, 0, 0.1, 0.429, 0.587, 0.75, 0.857, 1, 1, 1]),
+            np.array([2.024, 1.558, 2.025, 2.583, 2.466, 0.75, 0.3, 2.614]),
+        ),
+        1e-2,
         100.0,
     ),
 }
